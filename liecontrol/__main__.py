@@ -1,0 +1,5 @@
+import sys
+
+from liecontrol.cli import main
+
+sys.exit(main())

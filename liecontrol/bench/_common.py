@@ -1,0 +1,78 @@
+"""Timing, table and JSON helpers shared by every ``liecontrol bench`` subcommand.
+
+Absolute times drift on a shared machine; what a benchmark reports is the ratio anchor/ours measured
+in the same run, with each side timed as the median of several runs after warm-up.
+"""
+
+from __future__ import annotations
+
+import json
+import statistics
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import torch
+
+__all__ = ["time_ms", "print_table", "write_json", "sync"]
+
+
+def sync(device: torch.device | str | None = None) -> None:
+    """Wait for queued CUDA work (no-op on CPU)."""
+    if device is not None and torch.device(device).type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def time_ms(fn: Callable[[], object], repeats: int = 7, warmup: int = 2,
+            device: torch.device | str | None = None, min_time_s: float = 0.0) -> float:
+    """Median wall time of ``fn()`` in milliseconds over ``repeats`` runs after ``warmup`` runs.
+
+    With ``min_time_s`` > 0 each timed sample loops ``fn`` until that much time has passed and reports
+    the time per call, which keeps sub-millisecond calls above the timer's resolution.
+    """
+    for _ in range(warmup):
+        fn()
+    sync(device)
+    samples = []
+    for _ in range(max(repeats, 1)):
+        n = 0
+        t0 = time.perf_counter()
+        while True:
+            fn()
+            n += 1
+            sync(device)
+            dt = time.perf_counter() - t0
+            if dt >= min_time_s:
+                break
+        samples.append(1e3 * dt / n)
+    return statistics.median(samples)
+
+
+def _fmt(v: object) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        if v != v:
+            return "nan"
+        if v == 0:
+            return "0"
+        a = abs(v)
+        return f"{v:.2e}" if a < 1e-2 or a >= 1e5 else f"{v:.3g}" if a < 100 else f"{v:.0f}"
+    return str(v)
+
+
+def print_table(rows: Sequence[dict], columns: Sequence[str], file=None) -> None:
+    """Print ``rows`` (dicts) as an aligned text table with the given columns."""
+    cells = [[c for c in columns]] + [[_fmt(r.get(c)) for c in columns] for r in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
+    for k, row in enumerate(cells):
+        print("  ".join(s.rjust(w) for s, w in zip(row, widths)), file=file)
+        if k == 0:
+            print("  ".join("-" * w for w in widths), file=file)
+
+
+def write_json(path: str | Path, records: list[dict]) -> None:
+    """Write ``records`` as a JSON list (parent folders are created)."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(records, indent=1, default=float) + "\n")
