@@ -1,0 +1,270 @@
+"""SE(3): rigid motions as homogeneous matrices ``(*, 4, 4)``; tangent vectors ξ = [v, ω] ``(*, 6)``.
+
+The tangent ordering ``[v, ω]`` (translational part first) is seed 000 Eq. 2; ``ad`` is seed 000
+Eq. 4.  The contract (shapes, Jacobian conventions, broadcasting) is written once in :mod:`torchlie`.
+Formulas: Solà, Deray, Atchuthan, *A micro Lie theory* (2018), Eq. 172-180: ``exp([v, ω]) =
+[[exp(ω), J_l(ω) v], [0, 1]]``, and the SE(3) Jacobians ``J_l([v, ω]) = [[J_l(ω), Q(v, ω)],
+[0, J_l(ω)]]``, ``J_r(ξ) = J_l(-ξ)``.
+
+Every closed-form coefficient has a Taylor branch near θ = 0 (safe-``where``), and ``log`` goes
+through :func:`torchlie.so3.log`, which is accurate up to and including θ = π.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchlie import so3 as _so3
+from torchlie._batch import broadcast_leading, check_same_device, check_tensor
+
+__all__ = [
+    "exp",
+    "log",
+    "hat",
+    "vee",
+    "compose",
+    "inverse",
+    "act",
+    "adjoint",
+    "ad",
+    "left_jacobian",
+    "left_jacobian_inv",
+    "right_jacobian",
+    "right_jacobian_inv",
+    "identity",
+    "random",
+    "interpolate",
+    "from_rt",
+    "to_rt",
+]
+
+DIM = 6
+MATRIX = 4
+
+
+def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return torch.linalg.cross(a, b, dim=-1)
+
+
+def _assemble(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """[[R, t], [0, 1]] ``(*, 4, 4)`` from R ``(*, 3, 3)`` and t ``(*, 3)`` (same leading dims)."""
+    bottom = torch.zeros(*R.shape[:-2], 1, 4, dtype=R.dtype, device=R.device)
+    bottom[..., 0, 3] = 1
+    return torch.cat((torch.cat((R, t.unsqueeze(-1)), -1), bottom), -2)
+
+
+def from_rt(R: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Homogeneous matrix from a rotation ``(*, 3, 3)`` and a translation ``(*, 3)`` (broadcast)."""
+    check_tensor(R, (3, 3), "R", "se3.from_rt")
+    check_tensor(t, (3,), "t", "se3.from_rt")
+    check_same_device("se3.from_rt", R=R, t=t)
+    R, t = broadcast_leading(R, 2, t, 1, "se3.from_rt", ("R", "t"))
+    return _assemble(R, t)
+
+
+def to_rt(X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Split a homogeneous matrix ``(*, 4, 4)`` into R ``(*, 3, 3)`` and t ``(*, 3)`` (views)."""
+    check_tensor(X, (4, 4), "X", "se3.to_rt")
+    return X[..., :3, :3], X[..., :3, 3]
+
+
+# --------------------------------------------------------------------------------------------------
+# algebra
+# --------------------------------------------------------------------------------------------------
+
+def hat(xi: torch.Tensor) -> torch.Tensor:
+    """ξ = [v, ω] ``(*, 6)`` -> ξ^ = [[ω̂, v], [0, 0]] ``(*, 4, 4)`` (seed 000 Eq. 1)."""
+    check_tensor(xi, (6,), "xi", "se3.hat")
+    top = torch.cat((_so3._hat(xi[..., 3:]), xi[..., :3].unsqueeze(-1)), -1)
+    return torch.cat((top, torch.zeros_like(top[..., :1, :])), -2)
+
+
+def vee(Xi: torch.Tensor) -> torch.Tensor:
+    """``(*, 4, 4)`` algebra matrix -> [v, ω] ``(*, 6)``."""
+    check_tensor(Xi, (4, 4), "Xi", "se3.vee")
+    return torch.cat((Xi[..., :3, 3], _so3._vee(Xi[..., :3, :3])), -1)
+
+
+def _ad(xi: torch.Tensor) -> torch.Tensor:
+    W, V = _so3._hat(xi[..., 3:]), _so3._hat(xi[..., :3])
+    return torch.cat((torch.cat((W, V), -1), torch.cat((torch.zeros_like(W), W), -1)), -2)
+
+
+def ad(xi: torch.Tensor) -> torch.Tensor:
+    """ad_ξ = [[ω̂, v̂], [0, ω̂]] ``(*, 6, 6)``, so ``ad_ξ1 ξ2 = [ξ1, ξ2]`` (seed 000 Eq. 4)."""
+    check_tensor(xi, (6,), "xi", "se3.ad")
+    return _ad(xi)
+
+
+# --------------------------------------------------------------------------------------------------
+# exp / log
+# --------------------------------------------------------------------------------------------------
+
+def _exp(xi: torch.Tensor) -> torch.Tensor:
+    v, w = xi[..., :3], xi[..., 3:]
+    theta2 = (w * w).sum(-1)
+    k = _so3._coeffs(theta2, "a b c cos")
+    a, b, c, co = (k[n].unsqueeze(-1) for n in ("a", "b", "c", "cos"))
+    outer = w.unsqueeze(-1) * w.unsqueeze(-2)
+    R = b.unsqueeze(-1) * outer + a.unsqueeze(-1) * _so3._hat(w) + co.unsqueeze(-1) * _so3._eye_like(w)
+    # t = J_l(ω) v = v + b ω×v + c ω×(ω×v),  ω×(ω×v) = ω (ω·v) − θ² v
+    wv = (w * v).sum(-1, keepdim=True)
+    t = (1 - c * theta2.unsqueeze(-1)) * v + b * _cross(w, v) + (c * wv) * w
+    return _assemble(R, t)
+
+
+def exp(xi: torch.Tensor) -> torch.Tensor:
+    """Exponential map ξ = [v, ω] ``(*, 6)`` -> X ``(*, 4, 4)``."""
+    check_tensor(xi, (6,), "xi", "se3.exp")
+    return _exp(xi)
+
+
+def _log(X: torch.Tensor) -> torch.Tensor:
+    R, t = X[..., :3, :3], X[..., :3, 3]
+    w = _so3._log_from_quaternion(_so3._to_quaternion(R))
+    theta2 = (w * w).sum(-1, keepdim=True)
+    d = _so3._coeffs(theta2, "d")["d"]
+    # v = J_l(ω)⁻¹ t = t − ½ ω×t + d ω×(ω×t)
+    wt = (w * t).sum(-1, keepdim=True)
+    v = (1 - d * theta2) * t - 0.5 * _cross(w, t) + (d * wt) * w
+    return torch.cat((v, w), -1)
+
+
+def log(X: torch.Tensor) -> torch.Tensor:
+    """Logarithm X ``(*, 4, 4)`` -> principal ξ = [v, ω] ``(*, 6)`` with ``|ω| ≤ π``."""
+    check_tensor(X, (4, 4), "X", "se3.log")
+    return _log(X)
+
+
+# --------------------------------------------------------------------------------------------------
+# group operations
+# --------------------------------------------------------------------------------------------------
+
+def compose(X1: torch.Tensor, X2: torch.Tensor) -> torch.Tensor:
+    """X1 X2 with broadcasting over leading dims."""
+    check_tensor(X1, (4, 4), "X1", "se3.compose")
+    check_tensor(X2, (4, 4), "X2", "se3.compose")
+    check_same_device("se3.compose", X1=X1, X2=X2)
+    return torch.matmul(X1, X2)
+
+
+def inverse(X: torch.Tensor) -> torch.Tensor:
+    """X⁻¹ = [[Rᵀ, −Rᵀ t], [0, 1]]."""
+    check_tensor(X, (4, 4), "X", "se3.inverse")
+    Rt = X[..., :3, :3].transpose(-1, -2)
+    return _assemble(Rt, -torch.matmul(Rt, X[..., :3, 3:]).squeeze(-1))
+
+
+def act(X: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Transform points: X ``(*, 4, 4)``, p ``(*, 3)`` -> R p + t ``(*, 3)`` (leading dims broadcast)."""
+    check_tensor(X, (4, 4), "X", "se3.act")
+    check_tensor(p, (3,), "p", "se3.act")
+    check_same_device("se3.act", X=X, p=p)
+    return torch.matmul(X[..., :3, :3], p.unsqueeze(-1)).squeeze(-1) + X[..., :3, 3]
+
+
+def adjoint(X: torch.Tensor) -> torch.Tensor:
+    """Ad_X = [[R, t̂ R], [0, R]] ``(*, 6, 6)``: ``X exp(ξ) X⁻¹ = exp(Ad_X ξ)``."""
+    check_tensor(X, (4, 4), "X", "se3.adjoint")
+    R, t = X[..., :3, :3], X[..., :3, 3]
+    return torch.cat((torch.cat((R, _so3._hat(t) @ R), -1), torch.cat((torch.zeros_like(R), R), -1)), -2)
+
+
+# --------------------------------------------------------------------------------------------------
+# Jacobians
+# --------------------------------------------------------------------------------------------------
+
+def _q_coeffs(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """k1 = (θ − sin θ)/θ³, k2 = (θ² + 2 cos θ − 2)/(2θ⁴), k3 = (2θ − 3 sin θ + θ cos θ)/(2θ⁵)."""
+    small = theta2 < (0.05 if theta2.dtype == torch.float64 else 0.5)
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    th = torch.sqrt(t2)
+    s, co = torch.sin(th), torch.cos(th)
+    x = theta2
+    k1 = torch.where(small, 1 / 6 - x / 120 + x * x / 5040 - x ** 3 / 362880 + x ** 4 / 39916800,
+                     (th - s) / (t2 * th))
+    k2 = torch.where(small, 1 / 24 - x / 720 + x * x / 40320 - x ** 3 / 3628800 + x ** 4 / 479001600,
+                     (t2 + 2 * co - 2) / (2 * t2 * t2))
+    k3 = torch.where(small, 1 / 120 - x / 2520 + x * x / 120960 - x ** 3 / 9979200 + x ** 4 / 1245404160,
+                     (2 * th - 3 * s + th * co) / (2 * t2 * t2 * th))
+    return k1, k2, k3
+
+
+def _Q(v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+    """The off-diagonal block Q(v, ω) of the left Jacobian of SE(3) (Solà Eq. 180)."""
+    k1, k2, k3 = (k[..., None, None] for k in _q_coeffs((w * w).sum(-1)))
+    V, W = _so3._hat(v), _so3._hat(w)
+    WV, VW = W @ V, V @ W
+    WVW = WV @ W
+    return (0.5 * V + k1 * (WV + VW + WVW) + k2 * (W @ WV + VW @ W - 3 * WVW)
+            + k3 * (WVW @ W + W @ WVW))
+
+
+def _jac_l(xi: torch.Tensor) -> torch.Tensor:
+    v, w = xi[..., :3], xi[..., 3:]
+    J = _so3._jac(w, 1.0)
+    return torch.cat((torch.cat((J, _Q(v, w)), -1), torch.cat((torch.zeros_like(J), J), -1)), -2)
+
+
+def _jac_l_inv(xi: torch.Tensor) -> torch.Tensor:
+    v, w = xi[..., :3], xi[..., 3:]
+    Ji = _so3._jac_inv(w, 1.0)
+    top_right = -Ji @ _Q(v, w) @ Ji
+    return torch.cat((torch.cat((Ji, top_right), -1), torch.cat((torch.zeros_like(Ji), Ji), -1)), -2)
+
+
+def left_jacobian(xi: torch.Tensor) -> torch.Tensor:
+    """J_l(ξ) ``(*, 6, 6)``: ``exp(ξ + δ) ≈ exp(J_l δ) exp(ξ)``."""
+    check_tensor(xi, (6,), "xi", "se3.left_jacobian")
+    return _jac_l(xi)
+
+
+def right_jacobian(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(ξ) = J_l(−ξ) ``(*, 6, 6)``: ``exp(ξ + δ) ≈ exp(ξ) exp(J_r δ)``."""
+    check_tensor(xi, (6,), "xi", "se3.right_jacobian")
+    return _jac_l(-xi)
+
+
+def left_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
+    """J_l(ξ)⁻¹ in closed form (block-triangular inverse)."""
+    check_tensor(xi, (6,), "xi", "se3.left_jacobian_inv")
+    return _jac_l_inv(xi)
+
+
+def right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
+    """J_r(ξ)⁻¹ = J_l(−ξ)⁻¹ in closed form."""
+    check_tensor(xi, (6,), "xi", "se3.right_jacobian_inv")
+    return _jac_l_inv(-xi)
+
+
+# --------------------------------------------------------------------------------------------------
+# constructors
+# --------------------------------------------------------------------------------------------------
+
+def identity(*batch, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
+    """Identity transforms ``(*batch, 4, 4)``."""
+    shape = _so3._batch_shape(batch)
+    return torch.eye(4, dtype=dtype or torch.get_default_dtype(), device=device).expand(*shape, 4, 4).clone()
+
+
+def random(*batch, generator: torch.Generator | None = None, dtype: torch.dtype | None = None,
+           device=None, scale: float = 1.0) -> torch.Tensor:
+    """Random transforms ``(*batch, 4, 4)``: Haar-uniform rotation, translation ~ N(0, scale² I)."""
+    shape = _so3._batch_shape(batch)
+    dtype = dtype or torch.get_default_dtype()
+    if generator is not None and device is None:
+        device = generator.device
+    R = _so3.random(*shape, generator=generator, dtype=dtype, device=device)
+    t = scale * torch.randn(*shape, 3, generator=generator, dtype=dtype, device=device)
+    return _assemble(R, t)
+
+
+def interpolate(X0: torch.Tensor, X1: torch.Tensor, t) -> torch.Tensor:
+    """Geodesic ``X0 exp(t log(X0⁻¹ X1))`` (constant twist); ``t`` a float or a broadcasting tensor."""
+    check_tensor(X0, (4, 4), "X0", "se3.interpolate")
+    check_tensor(X1, (4, 4), "X1", "se3.interpolate")
+    check_same_device("se3.interpolate", X0=X0, X1=X1)
+    X0, X1 = broadcast_leading(X0, 2, X1, 2, "se3.interpolate", ("X0", "X1"))
+    xi = _log(inverse(X0) @ X1)
+    t = torch.as_tensor(t, dtype=xi.dtype, device=xi.device)
+    return X0 @ _exp(xi * t.unsqueeze(-1))

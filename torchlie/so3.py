@@ -1,0 +1,346 @@
+"""SO(3): 3-D rotations as rotation matrices ``(*, 3, 3)``; tangent vectors ω ``(*, 3)``.
+
+The contract (shapes, Jacobian conventions, broadcasting) is written once in :mod:`torchlie`.
+Formulas: Solà, Deray, Atchuthan, *A micro Lie theory for state estimation in robotics* (2018),
+Eq. 143-146 (exp/log, right and left Jacobians and their inverses); the log goes through the
+unit quaternion of the rotation (Shepperd's largest-diagonal branch) so that it stays accurate at
+every angle, including within 1e-9 of π, where the usual ``(R - Rᵀ)/(2 sin θ)`` formula breaks down.
+
+Small-angle branches use the safe-``where`` pattern: the closed form is evaluated on a harmless
+argument where the Taylor series is taken, so values *and* gradients are finite at exactly 0.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from torchlie._batch import broadcast_leading, check_same_device, check_tensor
+
+__all__ = [
+    "exp",
+    "log",
+    "hat",
+    "vee",
+    "compose",
+    "inverse",
+    "act",
+    "adjoint",
+    "ad",
+    "left_jacobian",
+    "left_jacobian_inv",
+    "right_jacobian",
+    "right_jacobian_inv",
+    "identity",
+    "random",
+    "interpolate",
+    "angle",
+    "project",
+    "to_quaternion",
+    "from_quaternion",
+]
+
+DIM = 3  # dimension of the tangent space
+MATRIX = 3  # size of the group matrix
+
+
+# --------------------------------------------------------------------------------------------------
+# scalar coefficient functions of θ² with safe small-angle series
+# --------------------------------------------------------------------------------------------------
+
+def _switch(dtype: torch.dtype) -> float:
+    """θ² below which the Taylor series (to θ⁶ relative) is used: exact to the dtype's resolution."""
+    return 1e-2 if dtype == torch.float64 else 1e-1
+
+
+def _coeffs(theta2: torch.Tensor, need: str) -> dict[str, torch.Tensor]:
+    """Coefficients of θ² used by exp and the Jacobians.
+
+    ``a = sin θ/θ``, ``b = (1 - cos θ)/θ²``, ``c = (θ - sin θ)/θ³``, ``cos = cos θ``,
+    ``d = (1/θ²)(1 - θ sin θ / (2(1 - cos θ)))`` (the ω̂² coefficient of J⁻¹).
+    Series are taken to the θ⁶ (a, b, c) or θ⁶ (d) term below :func:`_switch`; above it the closed
+    forms are evaluated.  Below the switch the closed forms see θ² = 1 (harmless), so no NaN or inf
+    reaches autograd.
+    """
+    small = theta2 < _switch(theta2.dtype)
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    th = torch.sqrt(t2)
+    s, co = torch.sin(th), torch.cos(th)
+    x = theta2
+    out: dict[str, torch.Tensor] = {}
+    if "a" in need:
+        out["a"] = torch.where(small, 1 - x / 6 * (1 - x / 20 * (1 - x / 42 * (1 - x / 72))), s / th)
+    if "b" in need:
+        out["b"] = torch.where(small, 0.5 - x / 24 * (1 - x / 30 * (1 - x / 56 * (1 - x / 90))),
+                               (1 - co) / t2)
+    if "c" in need:
+        out["c"] = torch.where(small, 1 / 6 - x / 120 * (1 - x / 42 * (1 - x / 72 * (1 - x / 110))),
+                               (th - s) / (t2 * th))
+    if "cos" in need:
+        out["cos"] = torch.where(small, 1 - x / 2 * (1 - x / 12 * (1 - x / 30 * (1 - x / 56))), co)
+    if "d" in need:
+        # d = 1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600 + ...
+        out["d"] = torch.where(small, 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
+                               (1 - th * s / (2 * (1 - co))) / t2)
+    return out
+
+
+# --------------------------------------------------------------------------------------------------
+# algebra
+# --------------------------------------------------------------------------------------------------
+
+def _hat(w: torch.Tensor) -> torch.Tensor:
+    x, y, z = w.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack((o, -z, y, z, o, -x, -y, x, o), dim=-1).reshape(*w.shape[:-1], 3, 3)
+
+
+def hat(omega: torch.Tensor) -> torch.Tensor:
+    """ω ``(*, 3)`` -> skew-symmetric ω̂ ``(*, 3, 3)`` with ``ω̂ p = ω × p`` (seed 000 Eq. 1)."""
+    check_tensor(omega, (3,), "omega", "so3.hat")
+    return _hat(omega)
+
+
+def vee(Omega: torch.Tensor) -> torch.Tensor:
+    """Skew matrix ``(*, 3, 3)`` -> ω ``(*, 3)``; the symmetric part of a non-skew input is ignored."""
+    check_tensor(Omega, (3, 3), "Omega", "so3.vee")
+    return _vee(Omega)
+
+
+def _vee(M: torch.Tensor) -> torch.Tensor:
+    return 0.5 * torch.stack((M[..., 2, 1] - M[..., 1, 2], M[..., 0, 2] - M[..., 2, 0],
+                              M[..., 1, 0] - M[..., 0, 1]), dim=-1)
+
+
+def ad(omega: torch.Tensor) -> torch.Tensor:
+    """ad_ω = ω̂ ``(*, 3, 3)``: ``ad_ω η = ω × η`` (seed 000 Eq. 3)."""
+    check_tensor(omega, (3,), "omega", "so3.ad")
+    return _hat(omega)
+
+
+# --------------------------------------------------------------------------------------------------
+# exp / log
+# --------------------------------------------------------------------------------------------------
+
+def _eye_like(x: torch.Tensor, n: int = 3) -> torch.Tensor:
+    return torch.eye(n, dtype=x.dtype, device=x.device)
+
+
+def _exp(w: torch.Tensor) -> torch.Tensor:
+    theta2 = (w * w).sum(-1)
+    k = _coeffs(theta2, "a b cos")
+    # R = cos θ I + (sin θ/θ) ω̂ + ((1 - cos θ)/θ²) ω ωᵀ
+    outer = w.unsqueeze(-1) * w.unsqueeze(-2)
+    R = k["b"][..., None, None] * outer + k["a"][..., None, None] * _hat(w)
+    return R + k["cos"][..., None, None] * _eye_like(w)
+
+
+def exp(omega: torch.Tensor) -> torch.Tensor:
+    """Exponential map ω ``(*, 3)`` -> R ``(*, 3, 3)`` (Rodrigues)."""
+    check_tensor(omega, (3,), "omega", "so3.exp")
+    return _exp(omega)
+
+
+def _to_quaternion(R: torch.Tensor) -> torch.Tensor:
+    """Unit quaternion ``(w, x, y, z)`` with w ≥ 0 of a rotation matrix (Shepperd's method, batched).
+
+    The four candidate formulas are all evaluated and the one with the largest ``4 q_i²`` is taken,
+    which keeps the division well away from zero; the square roots of the others see clamped
+    arguments, so their (discarded) gradients stay finite.
+    """
+    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = r00 + r11 + r22
+    # 4 q_i² for i = w, x, y, z
+    d = torch.stack((1 + tr, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22), dim=-1)
+    s = torch.sqrt(torch.clamp(d, min=0.25))  # = 2|q_i| on the chosen branch (d_max ≥ 1)
+    a21, a02, a10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
+    b10, b02, b21 = R[..., 1, 0] + R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] + R[..., 1, 2]
+    s0, s1, s2, s3 = s.unbind(-1)
+    # each row: quaternion computed from branch i, scaled by 2|q_i| (= s_i): [q_w, q_x, q_y, q_z] * s_i * 2
+    cand = torch.stack((
+        torch.stack((s0 * s0, a21, a02, a10), -1) / (2 * s0)[..., None],
+        torch.stack((a21, s1 * s1, b10, b02), -1) / (2 * s1)[..., None],
+        torch.stack((a02, b10, s2 * s2, b21), -1) / (2 * s2)[..., None],
+        torch.stack((a10, b02, b21, s3 * s3), -1) / (2 * s3)[..., None],
+    ), dim=-2)  # (*, 4, 4)
+    idx = torch.argmax(d, dim=-1, keepdim=True)
+    q = torch.gather(cand, -2, idx.unsqueeze(-1).expand(*idx.shape[:-1], 1, 4)).squeeze(-2)
+    q = torch.where(q[..., :1] < 0, -q, q)
+    return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+
+
+def _log_from_quaternion(q: torch.Tensor) -> torch.Tensor:
+    """ω of a unit quaternion (w ≥ 0): angle 2 atan2(|v|, w) ∈ [0, π] about v/|v|."""
+    w, v = q[..., :1], q[..., 1:]
+    n2 = (v * v).sum(-1, keepdim=True)
+    small = n2 < (1e-10 if q.dtype == torch.float64 else 1e-6)
+    n2s = torch.where(small, torch.ones_like(n2), n2)
+    n = torch.sqrt(n2s)
+    # 2 atan2(n, w)/n, and its series 2/w (1 - n²/(3 w²)) for small n (w ≈ 1 there)
+    big = 2 * torch.atan2(n, w) / n
+    ws = torch.where(small, w, torch.ones_like(w))
+    series = 2 / ws * (1 - n2 / (3 * ws * ws))
+    return torch.where(small, series, big) * v
+
+
+def log(R: torch.Tensor) -> torch.Tensor:
+    """Logarithm R ``(*, 3, 3)`` -> principal ω ``(*, 3)`` with ``|ω| ≤ π``.
+
+    Exact to the dtype's resolution at every angle (via the quaternion, see module docstring).
+    At exactly θ = π both ±ω are logarithms; the one returned is fixed by the quaternion sign.
+    """
+    check_tensor(R, (3, 3), "R", "so3.log")
+    return _log_from_quaternion(_to_quaternion(R))
+
+
+def to_quaternion(R: torch.Tensor) -> torch.Tensor:
+    """Rotation matrix ``(*, 3, 3)`` -> unit quaternion ``(*, 4)`` in ``(w, x, y, z)`` order, w ≥ 0."""
+    check_tensor(R, (3, 3), "R", "so3.to_quaternion")
+    return _to_quaternion(R)
+
+
+def from_quaternion(q: torch.Tensor) -> torch.Tensor:
+    """Quaternion ``(*, 4)`` in ``(w, x, y, z)`` order (normalized here) -> rotation matrix ``(*, 3, 3)``."""
+    check_tensor(q, (4,), "q", "so3.from_quaternion")
+    q = q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack((
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ), dim=-1).reshape(*q.shape[:-1], 3, 3)
+
+
+def angle(R: torch.Tensor) -> torch.Tensor:
+    """Rotation angle θ ∈ [0, π] of R ``(*, 3, 3)`` (accurate near 0 and π)."""
+    check_tensor(R, (3, 3), "R", "so3.angle")
+    q = _to_quaternion(R)
+    return 2 * torch.atan2(torch.linalg.vector_norm(q[..., 1:], dim=-1), q[..., 0])
+
+
+# --------------------------------------------------------------------------------------------------
+# group operations
+# --------------------------------------------------------------------------------------------------
+
+def compose(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
+    """R1 R2 with broadcasting over leading dims."""
+    check_tensor(R1, (3, 3), "R1", "so3.compose")
+    check_tensor(R2, (3, 3), "R2", "so3.compose")
+    check_same_device("so3.compose", R1=R1, R2=R2)
+    return torch.matmul(R1, R2)
+
+
+def inverse(R: torch.Tensor) -> torch.Tensor:
+    """R⁻¹ = Rᵀ."""
+    check_tensor(R, (3, 3), "R", "so3.inverse")
+    return R.transpose(-1, -2)
+
+
+def act(R: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
+    """Rotate points: R ``(*, 3, 3)``, p ``(*, 3)`` -> R p ``(*, 3)`` (leading dims broadcast)."""
+    check_tensor(R, (3, 3), "R", "so3.act")
+    check_tensor(p, (3,), "p", "so3.act")
+    check_same_device("so3.act", R=R, p=p)
+    return torch.matmul(R, p.unsqueeze(-1)).squeeze(-1)
+
+
+def adjoint(R: torch.Tensor) -> torch.Tensor:
+    """Ad_R = R: ``R exp(ω) Rᵀ = exp(R ω)``."""
+    check_tensor(R, (3, 3), "R", "so3.adjoint")
+    return R
+
+
+# --------------------------------------------------------------------------------------------------
+# Jacobians
+# --------------------------------------------------------------------------------------------------
+
+def _jac(w: torch.Tensor, sign: float) -> torch.Tensor:
+    # J_l(ω) = I + b ω̂ + c ω̂²,  J_r(ω) = J_l(-ω)  (Solà Eq. 145-146), with ω̂² = ωωᵀ - θ² I
+    theta2 = (w * w).sum(-1)
+    k = _coeffs(theta2, "b c")
+    c = k["c"][..., None, None]
+    J = c * (w.unsqueeze(-1) * w.unsqueeze(-2)) + (sign * k["b"])[..., None, None] * _hat(w)
+    return J + (1 - k["c"] * theta2)[..., None, None] * _eye_like(w)
+
+
+def _jac_inv(w: torch.Tensor, sign: float) -> torch.Tensor:
+    # J_l⁻¹(ω) = I - ½ ω̂ + d ω̂²  (Solà Eq. 146), d = 1/θ² - (1 + cos θ)/(2 θ sin θ)
+    theta2 = (w * w).sum(-1)
+    d = _coeffs(theta2, "d")["d"]
+    J = d[..., None, None] * (w.unsqueeze(-1) * w.unsqueeze(-2)) - (0.5 * sign) * _hat(w)
+    return J + (1 - d * theta2)[..., None, None] * _eye_like(w)
+
+
+def left_jacobian(omega: torch.Tensor) -> torch.Tensor:
+    """J_l(ω) ``(*, 3, 3)``: ``exp(ω + δ) ≈ exp(J_l δ) exp(ω)``."""
+    check_tensor(omega, (3,), "omega", "so3.left_jacobian")
+    return _jac(omega, 1.0)
+
+
+def right_jacobian(omega: torch.Tensor) -> torch.Tensor:
+    """J_r(ω) = J_l(-ω) ``(*, 3, 3)``: ``exp(ω + δ) ≈ exp(ω) exp(J_r δ)``."""
+    check_tensor(omega, (3,), "omega", "so3.right_jacobian")
+    return _jac(omega, -1.0)
+
+
+def left_jacobian_inv(omega: torch.Tensor) -> torch.Tensor:
+    """J_l(ω)⁻¹ in closed form (singular at |ω| = 2π; finite for principal ω, |ω| ≤ π)."""
+    check_tensor(omega, (3,), "omega", "so3.left_jacobian_inv")
+    return _jac_inv(omega, 1.0)
+
+
+def right_jacobian_inv(omega: torch.Tensor) -> torch.Tensor:
+    """J_r(ω)⁻¹ = J_l(-ω)⁻¹ in closed form."""
+    check_tensor(omega, (3,), "omega", "so3.right_jacobian_inv")
+    return _jac_inv(omega, -1.0)
+
+
+# --------------------------------------------------------------------------------------------------
+# constructors
+# --------------------------------------------------------------------------------------------------
+
+def _batch_shape(batch) -> tuple[int, ...]:
+    if len(batch) == 1 and isinstance(batch[0], (tuple, list, torch.Size)):
+        batch = tuple(batch[0])
+    return tuple(int(b) for b in batch)
+
+
+def identity(*batch, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
+    """Identity rotations of shape ``(*batch, 3, 3)``."""
+    shape = _batch_shape(batch)
+    return torch.eye(3, dtype=dtype or torch.get_default_dtype(), device=device).expand(*shape, 3, 3).clone()
+
+
+def random(*batch, generator: torch.Generator | None = None, dtype: torch.dtype | None = None,
+           device=None) -> torch.Tensor:
+    """Uniform (Haar) random rotations ``(*batch, 3, 3)``: normalized Gaussian quaternions."""
+    shape = _batch_shape(batch)
+    dtype = dtype or torch.get_default_dtype()
+    if generator is not None and device is None:
+        device = generator.device
+    q = torch.randn(*shape, 4, generator=generator, dtype=dtype, device=device)
+    # a Gaussian 4-vector of norm 0 has probability 0; guard anyway so no NaN can appear
+    q = torch.where(torch.linalg.vector_norm(q, dim=-1, keepdim=True) > 0, q, torch.ones_like(q))
+    return from_quaternion(q)
+
+
+def interpolate(R0: torch.Tensor, R1: torch.Tensor, t) -> torch.Tensor:
+    """Geodesic ``R0 exp(t log(R0ᵀ R1))``; ``t`` a float or a tensor broadcasting with the batch."""
+    check_tensor(R0, (3, 3), "R0", "so3.interpolate")
+    check_tensor(R1, (3, 3), "R1", "so3.interpolate")
+    check_same_device("so3.interpolate", R0=R0, R1=R1)
+    R0, R1 = broadcast_leading(R0, 2, R1, 2, "so3.interpolate", ("R0", "R1"))
+    w = _log_from_quaternion(_to_quaternion(R0.transpose(-1, -2) @ R1))
+    t = torch.as_tensor(t, dtype=w.dtype, device=w.device)
+    return R0 @ _exp(w * t.unsqueeze(-1))
+
+
+def project(M: torch.Tensor) -> torch.Tensor:
+    """Nearest rotation matrix (Frobenius) to ``M`` ``(*, 3, 3)``, via SVD with det fixed to +1."""
+    check_tensor(M, (3, 3), "M", "so3.project")
+    U, _, Vh = torch.linalg.svd(M)
+    det = torch.linalg.det(U @ Vh)
+    D = torch.ones(*M.shape[:-2], 3, dtype=M.dtype, device=M.device)
+    D = torch.cat((D[..., :2], det.unsqueeze(-1)), -1)
+    return (U * D.unsqueeze(-2)) @ Vh
+
+
