@@ -1,0 +1,67 @@
+"""Shared pieces of the second-order (position, velocity) system models.
+
+State ``x = [q, v]`` with ``q, v ∈ R^k``; continuous acceleration ``a(q, v, u)``.  The discrete step is
+semi-implicit (symplectic) Euler::
+
+    v⁺ = v + dt · a(q, v, u),     q⁺ = q + dt · v⁺,
+
+whose exact Jacobians follow from those of ``a``::
+
+    A = [[I + dt² a_q,  dt I + dt² a_v],     B = [[dt² a_u],
+         [dt a_q,       I + dt a_v    ]],         [dt a_u ]].
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["param", "euler_step", "euler_jacobian", "check_xu"]
+
+
+def param(value: Tensor | float, like: Tensor, name: str, owner: str) -> Tensor:
+    """A model parameter as a tensor with the dtype/device of ``like`` (floats only are converted).
+
+    A tensor parameter broadcasts against ``like.shape[:-1]`` from the right (``(B,)`` for a batch of
+    models); nothing is cast silently: a tensor of another dtype is an error.
+    """
+    if isinstance(value, Tensor):
+        if value.dtype != like.dtype:
+            raise TypeError(f"{owner}: parameter '{name}' has dtype {value.dtype} but the state has "
+                            f"{like.dtype}; cast one of them explicitly")
+        return value.to(like.device)
+    return torch.as_tensor(float(value), dtype=like.dtype, device=like.device)
+
+
+def check_xu(x: Tensor, u: Tensor, n: int, m: int, owner: str) -> None:
+    if not isinstance(x, Tensor) or not isinstance(u, Tensor):
+        raise TypeError(f"{owner}: x and u must be tensors")
+    if x.shape[-1:] != (n,):
+        raise ValueError(f"{owner}: x must have shape (*B, {n}), got {tuple(x.shape)}")
+    if u.shape[-1:] != (m,):
+        raise ValueError(f"{owner}: u must have shape (*B, {m}), got {tuple(u.shape)}")
+    if x.dtype != u.dtype:
+        raise TypeError(f"{owner}: x and u must share a dtype, got {x.dtype} and {u.dtype}")
+
+
+def euler_step(x: Tensor, acc: Tensor, dt: Tensor) -> Tensor:
+    """Semi-implicit Euler step of ``x = [q, v]`` given the acceleration ``acc`` (same shape as ``v``)."""
+    k = acc.shape[-1]
+    q, v = x[..., :k], x[..., k:]
+    dt = dt.unsqueeze(-1)
+    v1 = v + dt * acc
+    return torch.cat([q + dt * v1, v1], dim=-1)
+
+
+def euler_jacobian(a_q: Tensor, a_v: Tensor, a_u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+    """``(A, B)`` of the semi-implicit Euler step from ``a_q, a_v (*B, k, k)`` and ``a_u (*B, k, m)``."""
+    k = a_q.shape[-1]
+    eye = torch.eye(k, dtype=a_q.dtype, device=a_q.device)
+    dt = dt[..., None, None]
+    bs = torch.broadcast_shapes(a_q.shape, a_v.shape)
+    a_q, a_v = a_q.expand(bs), a_v.expand(bs)
+    Av = torch.cat([dt * a_q, eye + dt * a_v], dim=-1)
+    Aq = torch.cat([eye.expand(bs), torch.zeros_like(eye).expand(bs)], dim=-1) + dt * Av
+    Bv = dt * a_u
+    Bq = dt * Bv
+    return torch.cat([Aq, Av], dim=-2), torch.cat([Bq, Bv], dim=-2)

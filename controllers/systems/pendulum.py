@@ -1,0 +1,87 @@
+"""Torque-driven pendulum: a batched model shared by the MPC, the simulator and the environments.
+
+State ``x = [θ, ω]`` with ``θ = 0`` hanging down and ``θ = π`` upright; control ``u = [τ]`` (torque)::
+
+    m l² ω̇ = τ - b ω - m g l sin θ,
+
+discretized by semi-implicit Euler (:mod:`controllers.systems._mechanical`) with exact analytic Jacobians.
+Parameters (mass, length, damping, gravity, dt) are floats or tensors broadcasting against the batch dims
+of the state, so gradients with respect to a physical parameter flow through :meth:`step` and
+:meth:`jacobian`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param
+
+__all__ = ["Pendulum"]
+
+
+@dataclass(frozen=True, eq=False)
+class Pendulum:
+    """Batched pendulum ``x = [θ, ω]``, ``u = [τ]`` (``θ = 0`` down, ``θ = π`` up).
+
+    Attributes:
+        mass, length, damping, gravity: floats or tensors broadcasting against ``x.shape[:-1]``.
+        dt: time step of :meth:`step` (float or tensor).
+    """
+
+    mass: Tensor | float = 1.0
+    length: Tensor | float = 1.0
+    damping: Tensor | float = 0.0
+    gravity: Tensor | float = 9.81
+    dt: Tensor | float = 0.05
+
+    n = 2
+    m = 1
+
+    def _params(self, x: Tensor):
+        own = "Pendulum"
+        return tuple(param(getattr(self, k), x, k, own)
+                     for k in ("mass", "length", "damping", "gravity", "dt"))
+
+    def acceleration(self, x: Tensor, u: Tensor) -> Tensor:
+        """``ω̇ (*B, 1)`` from ``x (*B, 2)`` and ``u (*B, 1)``."""
+        check_xu(x, u, 2, 1, "Pendulum.acceleration")
+        mass, length, b, g, _ = self._params(x)
+        th, om = x[..., 0], x[..., 1]
+        ml2 = mass * length * length
+        return ((u[..., 0] - b * om) / ml2 - g / length * torch.sin(th)).unsqueeze(-1)
+
+    def derivative(self, x: Tensor, u: Tensor) -> Tensor:
+        """Continuous-time ``ẋ = [ω, ω̇]``."""
+        return torch.cat([x[..., 1:2], self.acceleration(x, u)], dim=-1)
+
+    def step(self, x: Tensor, u: Tensor, t: int = 0) -> Tensor:
+        """``x_{t+1} (*B, 2)`` by semi-implicit Euler; ``t`` is ignored (time-invariant)."""
+        acc = self.acceleration(x, u)
+        dt = self._params(x)[4]
+        return euler_step(x, acc, dt.expand(acc.shape[:-1]))
+
+    def jacobian(self, x: Tensor, u: Tensor, t: int = 0) -> tuple[Tensor, Tensor]:
+        """Analytic ``(A (*B, 2, 2), B (*B, 2, 1))`` of :meth:`step`."""
+        check_xu(x, u, 2, 1, "Pendulum.jacobian")
+        mass, length, b, g, dt = self._params(x)
+        bs = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], mass.shape, length.shape, b.shape, g.shape,
+                                    dt.shape)
+        ml2 = mass * length * length
+        a_q = (-g / length * torch.cos(x[..., 0])).expand(bs)[..., None, None]
+        a_v = (-b / ml2).expand(bs)[..., None, None]
+        a_u = (1.0 / ml2).expand(bs)[..., None, None]
+        return euler_jacobian(a_q, a_v, a_u, dt.expand(bs))
+
+    def energy(self, x: Tensor) -> Tensor:
+        """Mechanical energy ``½ m l² ω² + m g l (1 - cos θ)`` ``(*B,)``."""
+        mass, length, _, g, _ = self._params(x)
+        return 0.5 * mass * length**2 * x[..., 1] ** 2 + mass * g * length * (1 - torch.cos(x[..., 0]))
+
+    def dynamics(self):
+        """This model as a :class:`controllers.problem.NonlinearDynamics` (analytic Jacobians)."""
+        from controllers.problem import NonlinearDynamics
+
+        return NonlinearDynamics(f=self.step, n=2, m=1, jacobian=self.jacobian)
