@@ -167,6 +167,9 @@ def box_qp(
     x = torch.zeros(nb, m, dtype=dtype, device=device) if x0 is None else torch.where(fin1, x0, 0.0)
     x = torch.minimum(torch.maximum(x, lo), hi)
 
+    if m == 1:
+        return _box_qp_scalar(H, g, lo, hi, finite, batch)
+
     status = torch.full((nb,), int(BoxQPStatus.MAX_ITERATIONS), dtype=torch.long, device=device)
     status = torch.where(finite, status, int(BoxQPStatus.NON_FINITE))
     iters = torch.zeros(nb, dtype=torch.long, device=device)
@@ -232,3 +235,20 @@ def box_qp(
         status=status.reshape(batch),
         iterations=iters.reshape(batch),
     )
+
+
+def _box_qp_scalar(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, finite: Tensor, batch) -> BoxQPResult:
+    """Closed form for one variable: ``x = clip(-g/h, lower, upper)`` when ``h > 0``."""
+    h = H[..., 0]  # (nb, 1)
+    pd = (h > 0).squeeze(-1)
+    x = torch.minimum(torch.maximum(-g / torch.where(h > 0, h, 1.0), lo), hi)
+    x = torch.where(pd.unsqueeze(-1), x, torch.minimum(torch.maximum(torch.zeros_like(x), lo), hi))
+    grad = g + h * x
+    clamped = ((x <= lo) & (grad > 0)) | ((x >= hi) & (grad < 0))
+    status = torch.where(clamped.squeeze(-1), int(BoxQPStatus.ALL_CLAMPED), int(BoxQPStatus.CONVERGED))
+    status = torch.where(pd, status, int(BoxQPStatus.NOT_POSITIVE_DEFINITE))
+    status = torch.where(finite, status, int(BoxQPStatus.NON_FINITE))
+    x = torch.where(finite.unsqueeze(-1), x, torch.nan)
+    out = (*batch, 1)
+    return BoxQPResult(x=x.reshape(out), free=(~clamped).reshape(out), clamped=clamped.reshape(out),
+                       status=status.reshape(batch), iterations=torch.ones_like(status).reshape(batch))
