@@ -101,16 +101,20 @@ def ad(xi: torch.Tensor) -> torch.Tensor:
 # --------------------------------------------------------------------------------------------------
 
 def _exp(xi: torch.Tensor) -> torch.Tensor:
-    v, w = xi[..., :3], xi[..., 3:]
-    theta2 = (w * w).sum(-1)
+    vx, vy, vz, wx, wy, wz = _so3._soa(xi, 6)
+    theta2 = wx * wx + wy * wy + wz * wz
     k = _so3._coeffs(theta2, "a b c cos")
-    a, b, c, co = (k[n].unsqueeze(-1) for n in ("a", "b", "c", "cos"))
-    outer = w.unsqueeze(-1) * w.unsqueeze(-2)
-    R = b.unsqueeze(-1) * outer + a.unsqueeze(-1) * _so3._hat(w) + co.unsqueeze(-1) * _so3._eye_like(w)
-    # t = J_l(ω) v = v + b ω×v + c ω×(ω×v),  ω×(ω×v) = ω (ω·v) − θ² v
-    wv = (w * v).sum(-1, keepdim=True)
-    t = (1 - c * theta2.unsqueeze(-1)) * v + b * _cross(w, v) + (c * wv) * w
-    return _assemble(R, t)
+    r = _so3._rot_entries(wx, wy, wz, k)
+    b, c = k["b"], k["c"]
+    # t = J_l(ω) v = (1 − c θ²) v + b ω×v + c (ω·v) ω
+    s = 1 - c * theta2
+    cwv = c * (wx * vx + wy * vy + wz * vz)
+    tx = s * vx + b * (wy * vz - wz * vy) + cwv * wx
+    ty = s * vy + b * (wz * vx - wx * vz) + cwv * wy
+    tz = s * vz + b * (wx * vy - wy * vx) + cwv * wz
+    z, o = torch.zeros_like(theta2), torch.ones_like(theta2)
+    out = torch.stack((r[0], r[1], r[2], tx, r[3], r[4], r[5], ty, r[6], r[7], r[8], tz, z, z, z, o), -1)
+    return out.reshape(*xi.shape[:-1], 4, 4)
 
 
 def exp(xi: torch.Tensor) -> torch.Tensor:
@@ -120,14 +124,18 @@ def exp(xi: torch.Tensor) -> torch.Tensor:
 
 
 def _log(X: torch.Tensor) -> torch.Tensor:
-    R, t = X[..., :3, :3], X[..., :3, 3]
-    w = _so3._log_from_quaternion(_so3._to_quaternion(R))
-    theta2 = (w * w).sum(-1, keepdim=True)
+    e = _so3._soa(X[..., :3, :].reshape(*X.shape[:-2], 12), 12)
+    tx, ty, tz = e[3], e[7], e[11]
+    wx, wy, wz = _so3._log_entries((e[0], e[1], e[2], e[4], e[5], e[6], e[8], e[9], e[10]))
+    theta2 = wx * wx + wy * wy + wz * wz
     d = _so3._coeffs(theta2, "d")["d"]
-    # v = J_l(ω)⁻¹ t = t − ½ ω×t + d ω×(ω×t)
-    wt = (w * t).sum(-1, keepdim=True)
-    v = (1 - d * theta2) * t - 0.5 * _cross(w, t) + (d * wt) * w
-    return torch.cat((v, w), -1)
+    # v = J_l(ω)⁻¹ t = (1 − d θ²) t − ½ ω×t + d (ω·t) ω
+    s = 1 - d * theta2
+    dwt = d * (wx * tx + wy * ty + wz * tz)
+    vx = s * tx - 0.5 * (wy * tz - wz * ty) + dwt * wx
+    vy = s * ty - 0.5 * (wz * tx - wx * tz) + dwt * wy
+    vz = s * tz - 0.5 * (wx * ty - wy * tx) + dwt * wz
+    return torch.stack((vx, vy, vz, wx, wy, wz), -1).reshape(*X.shape[:-2], 6)
 
 
 def log(X: torch.Tensor) -> torch.Tensor:

@@ -125,13 +125,30 @@ def _eye_like(x: torch.Tensor, n: int = 3) -> torch.Tensor:
     return torch.eye(n, dtype=x.dtype, device=x.device)
 
 
+def _soa(x: torch.Tensor, k: int) -> tuple[torch.Tensor, ...]:
+    """The ``k`` trailing components of ``x`` ``(*B, k)`` as contiguous flat tensors ``(prod(B),)``.
+
+    One transposing copy up front makes every following elementwise op run on contiguous memory,
+    which is several times faster than operating on strided component views.
+    """
+    return x.reshape(-1, k).t().contiguous().unbind(0)
+
+
+def _rot_entries(wx, wy, wz, k) -> tuple[torch.Tensor, ...]:
+    """Row-major entries of R = cos θ I + a ω̂ + b ω ωᵀ from the components of ω."""
+    a, b, co = k["a"], k["b"], k["cos"]
+    bx, by, bz = b * wx, b * wy, b * wz
+    ax, ay, az = a * wx, a * wy, a * wz
+    bxy, bxz, byz = bx * wy, bx * wz, by * wz
+    return (torch.addcmul(co, bx, wx), bxy - az, bxz + ay,
+            bxy + az, torch.addcmul(co, by, wy), byz - ax,
+            bxz - ay, byz + ax, torch.addcmul(co, bz, wz))
+
+
 def _exp(w: torch.Tensor) -> torch.Tensor:
-    theta2 = (w * w).sum(-1)
-    k = _coeffs(theta2, "a b cos")
-    # R = cos θ I + (sin θ/θ) ω̂ + ((1 - cos θ)/θ²) ω ωᵀ
-    outer = w.unsqueeze(-1) * w.unsqueeze(-2)
-    R = k["b"][..., None, None] * outer + k["a"][..., None, None] * _hat(w)
-    return R + k["cos"][..., None, None] * _eye_like(w)
+    wx, wy, wz = _soa(w, 3)
+    k = _coeffs(wx * wx + wy * wy + wz * wz, "a b cos")
+    return torch.stack(_rot_entries(wx, wy, wz, k), -1).reshape(*w.shape[:-1], 3, 3)
 
 
 def exp(omega: torch.Tensor) -> torch.Tensor:
@@ -140,46 +157,63 @@ def exp(omega: torch.Tensor) -> torch.Tensor:
     return _exp(omega)
 
 
-def _to_quaternion(R: torch.Tensor) -> torch.Tensor:
-    """Unit quaternion ``(w, x, y, z)`` with w ≥ 0 of a rotation matrix (Shepperd's method, batched).
+def _quat_from_entries(r: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+    """Quaternion components ``(w, x, y, z)``, w ≥ 0, from the 9 row-major entries of R.
 
-    The four candidate formulas are all evaluated and the one with the largest ``4 q_i²`` is taken,
-    which keeps the division well away from zero; the square roots of the others see clamped
-    arguments, so their (discarded) gradients stay finite.
+    Shepperd's method, batched without Python branching: of the four formulas, the one whose
+    ``4 q_i² = d_i`` is largest is selected elementwise, so the divisor ``2 sqrt(d_i) ≥ 2`` never
+    approaches zero.  Only the selected formula receives gradient, and every candidate is finite.
     """
-    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = r
     tr = r00 + r11 + r22
-    # 4 q_i² for i = w, x, y, z
-    d = torch.stack((1 + tr, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22), dim=-1)
-    s = torch.sqrt(torch.clamp(d, min=0.25))  # = 2|q_i| on the chosen branch (d_max ≥ 1)
-    a21, a02, a10 = R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]
-    b10, b02, b21 = R[..., 1, 0] + R[..., 0, 1], R[..., 0, 2] + R[..., 2, 0], R[..., 2, 1] + R[..., 1, 2]
-    s0, s1, s2, s3 = s.unbind(-1)
-    # each row: quaternion computed from branch i, scaled by 2|q_i| (= s_i): [q_w, q_x, q_y, q_z] * s_i * 2
-    cand = torch.stack((
-        torch.stack((s0 * s0, a21, a02, a10), -1) / (2 * s0)[..., None],
-        torch.stack((a21, s1 * s1, b10, b02), -1) / (2 * s1)[..., None],
-        torch.stack((a02, b10, s2 * s2, b21), -1) / (2 * s2)[..., None],
-        torch.stack((a10, b02, b21, s3 * s3), -1) / (2 * s3)[..., None],
-    ), dim=-2)  # (*, 4, 4)
-    idx = torch.argmax(d, dim=-1, keepdim=True)
-    q = torch.gather(cand, -2, idx.unsqueeze(-1).expand(*idx.shape[:-1], 1, 4)).squeeze(-2)
-    q = torch.where(q[..., :1] < 0, -q, q)
+    d0, d1, d2, d3 = 1 + tr, 1 + r00 - r11 - r22, 1 - r00 + r11 - r22, 1 - r00 - r11 + r22
+    # elementwise argmax of (d0, d1, d2, d3) as masks (a reduction over a stacked dim is much slower)
+    e0 = (d0 >= d1) & (d0 >= d2) & (d0 >= d3)
+    e1 = ~e0 & (d1 >= d2) & (d1 >= d3)
+    e2 = ~(e0 | e1) & (d2 >= d3)
+    dsel = torch.where(e0, d0, torch.where(e1, d1, torch.where(e2, d2, d3)))
+    a21, a02, a10 = r21 - r12, r02 - r20, r10 - r01
+    b10, b02, b21 = r10 + r01, r02 + r20, r21 + r12
+    h = 0.5 * torch.rsqrt(dsel)
+    # numerators of (w, x, y, z) for the branches (w, x, y, z) — see the docstring
+    qw = torch.where(e0, dsel, torch.where(e1, a21, torch.where(e2, a02, a10))) * h
+    qx = torch.where(e0, a21, torch.where(e1, dsel, torch.where(e2, b10, b02))) * h
+    qy = torch.where(e0, a02, torch.where(e1, b10, torch.where(e2, dsel, b21))) * h
+    qz = torch.where(e0, a10, torch.where(e1, b02, torch.where(e2, b21, dsel))) * h
+    sgn = 1 - 2 * (qw < 0).to(qw.dtype)
+    return qw * sgn, qx * sgn, qy * sgn, qz * sgn
+
+
+def _log_from_quat(qw, qx, qy, qz) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """ω components of a quaternion with w ≥ 0: angle 2 atan2(|v|, w) ∈ [0, π] about v/|v|.
+
+    Scale-invariant, so the quaternion need not be exactly unit.
+    """
+    n2 = qx * qx + qy * qy + qz * qz
+    small = n2 < (1e-10 if qw.dtype == torch.float64 else 1e-6)
+    n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
+    ws = torch.where(small, qw, torch.ones_like(qw))
+    # 2 atan2(n, w)/n, and its series 2/w (1 - n²/(3 w²)) for small n (w ≈ 1 there)
+    f = torch.where(small, 2 / ws * (1 - n2 / (3 * ws * ws)), 2 * torch.atan2(n, qw) / n)
+    return f * qx, f * qy, f * qz
+
+
+def _log_entries(r: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    return _log_from_quat(*_quat_from_entries(r))
+
+
+def _log(R: torch.Tensor) -> torch.Tensor:
+    return torch.stack(_log_entries(_soa(R.reshape(*R.shape[:-2], 9), 9)), -1
+                       ).reshape(*R.shape[:-2], 3)
+
+
+def _to_quaternion(R: torch.Tensor) -> torch.Tensor:
+    q = torch.stack(_quat_from_entries(_soa(R.reshape(*R.shape[:-2], 9), 9)), -1).reshape(*R.shape[:-2], 4)
     return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
 
 
 def _log_from_quaternion(q: torch.Tensor) -> torch.Tensor:
-    """ω of a unit quaternion (w ≥ 0): angle 2 atan2(|v|, w) ∈ [0, π] about v/|v|."""
-    w, v = q[..., :1], q[..., 1:]
-    n2 = (v * v).sum(-1, keepdim=True)
-    small = n2 < (1e-10 if q.dtype == torch.float64 else 1e-6)
-    n2s = torch.where(small, torch.ones_like(n2), n2)
-    n = torch.sqrt(n2s)
-    # 2 atan2(n, w)/n, and its series 2/w (1 - n²/(3 w²)) for small n (w ≈ 1 there)
-    big = 2 * torch.atan2(n, w) / n
-    ws = torch.where(small, w, torch.ones_like(w))
-    series = 2 / ws * (1 - n2 / (3 * ws * ws))
-    return torch.where(small, series, big) * v
+    return torch.stack(_log_from_quat(*_soa(q, 4)), -1).reshape(*q.shape[:-1], 3)
 
 
 def log(R: torch.Tensor) -> torch.Tensor:
@@ -189,7 +223,7 @@ def log(R: torch.Tensor) -> torch.Tensor:
     At exactly θ = π both ±ω are logarithms; the one returned is fixed by the quaternion sign.
     """
     check_tensor(R, (3, 3), "R", "so3.log")
-    return _log_from_quaternion(_to_quaternion(R))
+    return _log(R)
 
 
 def to_quaternion(R: torch.Tensor) -> torch.Tensor:
@@ -329,7 +363,7 @@ def interpolate(R0: torch.Tensor, R1: torch.Tensor, t) -> torch.Tensor:
     check_tensor(R1, (3, 3), "R1", "so3.interpolate")
     check_same_device("so3.interpolate", R0=R0, R1=R1)
     R0, R1 = broadcast_leading(R0, 2, R1, 2, "so3.interpolate", ("R0", "R1"))
-    w = _log_from_quaternion(_to_quaternion(R0.transpose(-1, -2) @ R1))
+    w = _log(R0.transpose(-1, -2) @ R1)
     t = torch.as_tensor(t, dtype=w.dtype, device=w.device)
     return R0 @ _exp(w * t.unsqueeze(-1))
 
