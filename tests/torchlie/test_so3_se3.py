@@ -1,0 +1,348 @@
+"""SO(3) and SE(3): values against independent references (scipy, torch.linalg.matrix_exp), group
+axioms, Jacobian definitions by finite differences, gradients by gradcheck, batching, transforms
+(vmap, jacrev, compile) and bad input."""
+
+import math
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from torchlie import se3, so3
+from torchlie.testing import angles_near_edges, check_batching, fd_jacobian, rotation_vectors
+
+F64, F32 = torch.float64, torch.float32
+GROUPS = {"so3": (so3, 3, 3), "se3": (se3, 6, 4)}
+
+
+def tangents(mod, n, gen, dtype=F64):
+    w = rotation_vectors(n, gen, dtype)
+    if mod is so3:
+        return w
+    return torch.cat((torch.randn(w.shape[0], 3, generator=gen, dtype=F64).to(dtype), w), -1)
+
+
+@pytest.fixture
+def gen():
+    return torch.Generator().manual_seed(1234)
+
+
+# ---------------------------------------------------------------------------------------------- values
+
+def test_so3_exp_log_against_scipy(gen):
+    w = rotation_vectors(300, gen)
+    R = so3.exp(w)
+    Rs = torch.from_numpy(Rotation.from_rotvec(w.numpy()).as_matrix())
+    assert (R - Rs).abs().max() < 1e-14
+    # principal log: same rotation vector as scipy away from the π ambiguity
+    ws = torch.from_numpy(Rotation.from_matrix(R.numpy()).as_rotvec())
+    keep = w.norm(dim=-1) < math.pi - 1e-6
+    assert (so3.log(R)[keep] - ws[keep]).abs().max() < 1e-12
+    q = so3.to_quaternion(R)
+    qs = torch.from_numpy(Rotation.from_matrix(R.numpy()).as_quat(scalar_first=True))
+    qs = torch.where(qs[:, :1] < 0, -qs, qs)
+    assert (q[keep] - qs[keep]).abs().max() < 1e-12
+    assert (so3.from_quaternion(q) - R).abs().max() < 1e-14
+
+
+def test_se3_exp_against_matrix_exp(gen):
+    xi = tangents(se3, 300, gen)
+    assert (se3.exp(xi) - torch.linalg.matrix_exp(se3.hat(xi))).abs().max() < 1e-13
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_roundtrip_accuracy_everywhere(name, gen):
+    """exp(log(X)) == X to 1e-12 (float64) / 2e-5 (float32), incl. angles within 1e-9 of 0 and π."""
+    mod, _, _ = GROUPS[name]
+    xi = tangents(mod, 3000, gen)
+    for dtype, tol in ((F64, 1e-12), (F32, 2e-5)):
+        X = mod.exp(xi).to(dtype)
+        err = (mod.exp(mod.log(X)) - X).abs().max().item()
+        assert err <= tol, (dtype, err)
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_log_is_principal_and_inverts_exp(name, gen):
+    mod, _, _ = GROUPS[name]
+    xi = tangents(mod, 500, gen)
+    back = mod.log(mod.exp(xi))
+    assert (back[..., -3:].norm(dim=-1) <= math.pi + 1e-12).all()
+    keep = xi[..., -3:].norm(dim=-1) < math.pi - 1e-7
+    assert (back[keep] - xi[keep]).abs().max() < 1e-9
+
+
+def test_log_at_exactly_pi_and_zero():
+    for axis in torch.eye(3, dtype=F64):
+        R = so3.exp(math.pi * axis)
+        w = so3.log(R)
+        assert abs(w.norm().item() - math.pi) < 1e-14
+        assert (so3.exp(w) - R).abs().max() < 1e-14
+    R = torch.diag(torch.tensor([1.0, -1.0, -1.0], dtype=F64))  # Panda tool-down orientation
+    assert torch.allclose(so3.log(R).abs(), torch.tensor([math.pi, 0, 0], dtype=F64), atol=1e-15)
+    assert (so3.log(so3.identity(dtype=F64)) == 0).all()
+    assert (se3.log(se3.identity(dtype=F64)) == 0).all()
+    assert so3.angle(R).item() == pytest.approx(math.pi, abs=1e-15)
+
+
+@pytest.mark.parametrize("theta", [0.0, 1e-9, 1e-5, 1e-3, 0.3, math.pi - 1e-9])
+def test_float32_small_angles_are_exact(theta):
+    """No accuracy loss in float32 at small angles (pypose's float32 Jr is 5 % off at θ = 1e-3)."""
+    w64 = theta * torch.tensor([0.6, -0.48, 0.64], dtype=F64)
+    for f in (so3.exp, so3.right_jacobian, so3.left_jacobian_inv):
+        ref = f(w64)
+        assert (f(w64.float()).double() - ref).abs().max() < 5e-7
+    xi = torch.cat((torch.tensor([0.3, -1.0, 2.0], dtype=F64), w64))
+    for f in (se3.exp, se3.right_jacobian, se3.left_jacobian_inv):
+        assert (f(xi.float()).double() - f(xi)).abs().max() < 2e-6
+
+
+# ---------------------------------------------------------------------------------------------- Jacobians
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_jacobians_match_their_definition(name, gen):
+    mod, d, _ = GROUPS[name]
+    xs = tangents(mod, 6, gen)
+    xs = xs[xs[..., -3:].norm(dim=-1) < math.pi - 1e-3]  # FD steps must not cross the cut locus
+    for x in xs:
+        X = mod.exp(x)
+        Jr = fd_jacobian(lambda y, X=X: mod.log(mod.compose(mod.inverse(X), mod.exp(y))), x)
+        Jl = fd_jacobian(lambda y, X=X: mod.log(mod.compose(mod.exp(y), mod.inverse(X))), x)
+        assert (Jr - mod.right_jacobian(x)).abs().max() < 1e-7
+        assert (Jl - mod.left_jacobian(x)).abs().max() < 1e-7
+        eye = torch.eye(d, dtype=F64)
+        assert (mod.right_jacobian_inv(x) @ mod.right_jacobian(x) - eye).abs().max() < 1e-10
+        assert (mod.left_jacobian_inv(x) @ mod.left_jacobian(x) - eye).abs().max() < 1e-10
+        # J_l = Ad_exp(x) J_r
+        assert (mod.left_jacobian(x) - mod.adjoint(X) @ mod.right_jacobian(x)).abs().max() < 1e-12
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_jacobians_near_zero_use_exact_series(name):
+    """Against an independent reference: J_l(x) = Σ_k ad_x^k/(k+1)!, J_r(x) = J_l(−x)."""
+    mod, d, _ = GROUPS[name]
+    for s in (0.0, 1e-12, 1e-6, 1e-3, 0.05, 0.3, 1.5):
+        x = s * torch.linspace(0.3, 1.0, d, dtype=F64)
+        A = mod.ad(x)
+        Jl = sum(torch.linalg.matrix_power(A, k) / float(math.factorial(k + 1)) for k in range(30))
+        Jr = sum(torch.linalg.matrix_power(-A, k) / float(math.factorial(k + 1)) for k in range(30))
+        assert (mod.left_jacobian(x) - Jl).abs().max() < 1e-14
+        assert (mod.right_jacobian(x) - Jr).abs().max() < 1e-14
+        assert (mod.left_jacobian_inv(x) - torch.linalg.inv(Jl)).abs().max() < 1e-13
+
+
+# ---------------------------------------------------------------------------------------------- axioms
+
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), name=st.sampled_from(["so3", "se3"]))
+def test_group_axioms_and_adjoint_identities(seed, name):
+    mod, d, n = GROUPS[name]
+    g = torch.Generator().manual_seed(seed)
+    X, Y, Z = (mod.random(4, generator=g, dtype=F64) for _ in range(3))
+    eye = mod.identity(4, dtype=F64)
+    assert (mod.compose(mod.compose(X, Y), Z) - mod.compose(X, mod.compose(Y, Z))).abs().max() < 1e-12
+    assert (mod.compose(X, mod.inverse(X)) - eye).abs().max() < 1e-12
+    assert (mod.compose(eye, X) - X).abs().max() == 0
+    x, y = 0.5 * torch.randn(4, d, generator=g, dtype=F64), 0.5 * torch.randn(4, d, generator=g, dtype=F64)
+    AdX = mod.adjoint(X)
+    Adx = (AdX @ x.unsqueeze(-1)).squeeze(-1)
+    # X exp(x) X⁻¹ = exp(Ad_X x);  Ad_X ad_x Ad_X⁻¹ = ad_{Ad_X x};  Ad_{XY} = Ad_X Ad_Y
+    assert (mod.compose(mod.compose(X, mod.exp(x)), mod.inverse(X)) - mod.exp(Adx)).abs().max() < 1e-12
+    assert (AdX @ mod.ad(x) @ torch.linalg.inv(AdX) - mod.ad(Adx)).abs().max() < 1e-11
+    assert (mod.adjoint(mod.compose(X, Y)) - AdX @ mod.adjoint(Y)).abs().max() < 1e-12
+    # ad_x y = vee([x^, y^]) and exp(x) = exp(ad_x) on the adjoint representation
+    lie = mod.hat(x) @ mod.hat(y) - mod.hat(y) @ mod.hat(x)
+    assert (mod.vee(lie) - (mod.ad(x) @ y.unsqueeze(-1)).squeeze(-1)).abs().max() < 1e-12
+    assert (mod.adjoint(mod.exp(x)) - torch.linalg.matrix_exp(mod.ad(x))).abs().max() < 1e-12
+    assert (mod.vee(mod.hat(x)) - x).abs().max() == 0
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), t=st.floats(0, 1))
+def test_interpolate_is_geodesic(seed, t):
+    g = torch.Generator().manual_seed(seed)
+    for mod in (so3, se3):
+        X, Y = mod.random(3, generator=g, dtype=F64), mod.random(3, generator=g, dtype=F64)
+        assert (mod.interpolate(X, Y, 0.0) - X).abs().max() < 1e-12
+        assert (mod.interpolate(X, Y, 1.0) - Y).abs().max() < 1e-10
+        half = mod.interpolate(X, Y, 0.5)
+        # the midpoint is equidistant from both ends
+        d1 = mod.log(mod.compose(mod.inverse(X), half)).norm(dim=-1)
+        d2 = mod.log(mod.compose(mod.inverse(half), Y)).norm(dim=-1)
+        assert (d1 - d2).abs().max() < 1e-9
+        Zt = mod.interpolate(X, Y, t)
+        assert Zt.shape == X.shape
+
+
+def test_act_and_inverse():
+    g = torch.Generator().manual_seed(0)
+    X = se3.random(5, generator=g, dtype=F64)
+    p = torch.randn(5, 3, generator=g, dtype=F64)
+    ph = torch.cat((p, torch.ones(5, 1, dtype=F64)), -1)
+    assert (se3.act(X, p) - (X @ ph.unsqueeze(-1)).squeeze(-1)[:, :3]).abs().max() < 1e-14
+    assert (se3.inverse(X) - torch.linalg.inv(X)).abs().max() < 1e-12
+    R = so3.random(5, generator=g, dtype=F64)
+    ref = torch.from_numpy(Rotation.from_matrix(R.numpy()).apply(p.numpy()))
+    assert (so3.act(R, p) - ref).abs().max() < 1e-14
+    # broadcasting: one transform applied to a cloud of points
+    cloud = torch.randn(7, 5, 3, generator=g, dtype=F64)
+    assert se3.act(X, cloud).shape == (7, 5, 3)
+    assert (se3.act(X[0], cloud) - torch.stack([se3.act(X[0], c) for c in cloud])).abs().max() == 0
+
+
+def test_random_is_uniform_on_so3():
+    """Haar measure: the angle density is (1 − cos θ)/π, so E[θ] = π/2 + 2/π and E[R] = 0."""
+    R = so3.random(40000, generator=torch.Generator().manual_seed(7), dtype=F64)
+    th = so3.angle(R)
+    assert abs(th.mean().item() - (math.pi / 2 + 2 / math.pi)) < 0.02
+    assert R.mean(0).abs().max() < 0.02
+    assert (R.transpose(-1, -2) @ R - torch.eye(3, dtype=F64)).abs().max() < 1e-14
+    assert torch.allclose(torch.linalg.det(R), torch.ones((), dtype=F64))
+
+
+def test_random_generator_reproducible():
+    a = se3.random(3, generator=torch.Generator().manual_seed(5))
+    b = se3.random(3, generator=torch.Generator().manual_seed(5))
+    assert torch.equal(a, b)
+    assert a.dtype == torch.get_default_dtype()
+    assert so3.identity(2, 3, dtype=F64).shape == (2, 3, 3, 3)
+
+
+# ---------------------------------------------------------------------------------------------- gradients
+
+EDGE = [0.0, 1e-9, 1e-4, 0.2, 1.0, math.pi - 1e-3]
+
+
+@pytest.mark.parametrize("fn", ["exp", "left_jacobian", "right_jacobian", "left_jacobian_inv",
+                                "right_jacobian_inv", "hat", "ad"])
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_gradcheck_tangent_functions(fn, name):
+    mod, d, _ = GROUPS[name]
+    axis = torch.nn.functional.normalize(torch.linspace(0.4, 1.3, 3, dtype=F64), dim=0)
+    x = torch.stack([th * axis for th in EDGE])
+    if d == 6:
+        x = torch.cat((torch.tensor([[0.3, -0.2, 1.0]], dtype=F64).expand(len(EDGE), 3), x), -1)
+    assert torch.autograd.gradcheck(getattr(mod, fn), (x.clone().requires_grad_(),))
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_gradcheck_group_functions(name):
+    mod, d, _ = GROUPS[name]
+    g = torch.Generator().manual_seed(3)
+    axis = torch.nn.functional.normalize(torch.tensor([0.2, -0.5, 0.8], dtype=F64), dim=0)
+    w = torch.stack([th * axis for th in EDGE[:-1] + [math.pi - 1e-2]])
+    x = w if d == 3 else torch.cat((torch.randn(len(w), 3, generator=g, dtype=F64), w), -1)
+    X = mod.exp(x).requires_grad_()
+    Y = mod.random(len(w), generator=g, dtype=F64).requires_grad_()
+    p = torch.randn(len(w), 3, generator=g, dtype=F64, requires_grad=True)
+    assert torch.autograd.gradcheck(mod.log, (X,))
+    assert torch.autograd.gradcheck(mod.compose, (X, Y))
+    assert torch.autograd.gradcheck(mod.inverse, (X,))
+    assert torch.autograd.gradcheck(mod.act, (X, p))
+    assert torch.autograd.gradcheck(mod.adjoint, (X,))
+    assert torch.autograd.gradcheck(lambda a, b: mod.interpolate(a, b, 0.3), (X, Y))
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_gradients_finite_at_identity_and_pi(name):
+    mod, d, _ = GROUPS[name]
+    Xs = [mod.identity(dtype=F64), mod.exp(torch.cat((torch.ones(d - 3, dtype=F64),
+                                                       torch.tensor([0.0, 0.0, math.pi], dtype=F64))))]
+    Xs.append(torch.diag(torch.tensor([1.0, -1.0, -1.0] + ([1.0] if d == 6 else []), dtype=F64)))
+    for X in Xs:
+        X = X.clone().requires_grad_()
+        (g,) = torch.autograd.grad(mod.log(X).square().sum() + mod.log(X).sum(), X)
+        assert torch.isfinite(g).all()
+    x = torch.zeros(d, dtype=F64, requires_grad=True)
+    for f in (mod.exp, mod.left_jacobian, mod.right_jacobian_inv):
+        (g,) = torch.autograd.grad(f(x).sum(), x)
+        assert torch.isfinite(g).all()
+        (g2,) = torch.autograd.grad(torch.func.grad(lambda y, f=f: f(y).square().sum())(x).sum(), x)
+        assert torch.isfinite(g2).all()
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_exp_derivative_three_ways(name, gen):
+    """d exp(x)/dx: analytic (from J_r: dX = X (J_r δ)^), torch.func.jacrev and finite differences."""
+    mod, d, n = GROUPS[name]
+    x = tangents(mod, 3, gen)[-3]
+    analytic = torch.stack([mod.exp(x) @ mod.hat(mod.right_jacobian(x)[:, i]) for i in range(d)], -1)
+    autodiff = torch.func.jacrev(mod.exp)(x)
+    fd = fd_jacobian(mod.exp, x)
+    assert (analytic - autodiff).abs().max() < 1e-12
+    assert (analytic - fd).abs().max() < 1e-8
+
+
+# ---------------------------------------------------------------------------------------------- batching
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_batched_equals_flattened_equals_loop(name, gen):
+    mod, d, n = GROUPS[name]
+    x = tangents(mod, 21, gen)[:24].reshape(2, 3, 4, d)
+    check_batching(mod.exp, [x], [1])
+    check_batching(mod.right_jacobian_inv, [x], [1])
+    X = mod.exp(x)
+    check_batching(mod.log, [X], [2])
+    Y = mod.exp(x.flip(0))
+    check_batching(mod.compose, [X, Y], [2, 2])
+    # broadcasting == manual expansion
+    assert torch.equal(mod.compose(X[:1], Y), mod.compose(X[:1].expand_as(Y), Y))
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_vmap_jacrev_and_compile(name, gen):
+    mod, d, n = GROUPS[name]
+    x = tangents(mod, 5, gen)[-6:]
+    assert torch.allclose(torch.func.vmap(mod.exp)(x), mod.exp(x), atol=1e-15)
+    X = mod.exp(x)
+    assert torch.allclose(torch.func.vmap(mod.log)(X), mod.log(X), atol=1e-15)
+    J = torch.func.vmap(torch.func.jacrev(mod.log))(X)
+    assert J.shape == (6, d, n, n) and torch.isfinite(J).all()
+    torch._dynamo.reset()
+    f = torch.compile(lambda a, b: mod.log(mod.compose(mod.exp(a), b)), fullgraph=True, dynamic=False)
+    out = f(x, X)
+    assert torch.allclose(out, mod.log(mod.compose(mod.exp(x), X)), atol=1e-12)
+
+
+def test_dtype_and_device_follow_inputs():
+    for dtype in (F32, F64):
+        x = torch.randn(2, 6, dtype=dtype)
+        for out in (se3.exp(x), se3.log(se3.exp(x)), se3.left_jacobian(x), so3.exp(x[:, 3:])):
+            assert out.dtype == dtype and out.device == x.device
+    assert se3.identity(dtype=F64, device="cpu").dtype == F64
+
+
+# ---------------------------------------------------------------------------------------------- bad input
+
+def test_bad_input_errors_name_the_argument():
+    with pytest.raises(ValueError, match=r"'xi'.*\(\*, 6\)"):
+        se3.exp(torch.zeros(4, 3))
+    with pytest.raises(ValueError, match=r"'X'.*\(\*, 4, 4\)"):
+        se3.log(torch.zeros(3, 3))
+    with pytest.raises(TypeError, match="'omega'.*floating"):
+        so3.exp(torch.zeros(3, dtype=torch.int64))
+    with pytest.raises(TypeError, match="'R'.*torch.Tensor"):
+        so3.log([[1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    with pytest.raises(ValueError, match="'p'"):
+        se3.act(se3.identity(), torch.zeros(4))
+    with pytest.raises(TypeError, match="dtypes"):
+        so3.compose(so3.identity(dtype=F32), so3.identity(dtype=F64))
+    with pytest.raises(ValueError, match="do not broadcast"):
+        so3.interpolate(so3.identity(2), so3.identity(3), 0.5)
+
+
+def test_nan_stays_in_its_element():
+    x = torch.randn(5, 6, dtype=F64)
+    x[2, 4] = float("nan")
+    X = se3.exp(x)
+    assert torch.isnan(X[2]).any() and torch.isfinite(X[[0, 1, 3, 4]]).all()
+    X = se3.exp(torch.randn(5, 6, dtype=F64))
+    X[1, 0, 0] = float("nan")
+    xi = se3.log(X)
+    assert torch.isnan(xi[1]).any() and torch.isfinite(xi[[0, 2, 3, 4]]).all()
+
+
+def test_angles_near_edges_cover_zero_and_pi():
+    a = angles_near_edges(F64)
+    assert (a == 0).any() and (a == math.pi).any()
