@@ -59,7 +59,8 @@ Conventions and definitions at the edges
 * **Off-manifold inputs**: every checked entry point raises ``ValueError`` naming the argument and
   the first offending batch index, with a tolerance that depends on the dtype
   (:func:`manifold_tolerance`), unless ``project=True`` is passed, which normalizes (sphere),
-  symmetrizes and clamps eigenvalues (SPD), or projects by SVD (SO(3)/SE(3)) — never silently.
+  symmetrizes and clamps eigenvalues (SPD), or takes the nearest rotation (polar factor, SVD for
+  reflections; SO(3)/SE(3)) — never silently.
 * **Quaternions (S³)**: q and −q are one rotation; the sphere statistics treat them as two points.
   Align samples to one hemisphere first (:func:`hemisphere_align`).
 """
@@ -327,7 +328,7 @@ def _sphere_transport_182(x: torch.Tensor, y: torch.Tensor, v: torch.Tensor) -> 
     return torch.where(small, limit, literal)
 
 
-def _prep_sphere(fn: str, project: bool, **pts: torch.Tensor) -> list[torch.Tensor]:
+def _prep_sphere(fn: str, **pts: torch.Tensor) -> list[torch.Tensor]:
     out = []
     for name, t in pts.items():
         check_tensor(t, (t.shape[-1],) if isinstance(t, torch.Tensor) and t.dim() else (2,), name, fn)
@@ -354,7 +355,7 @@ def sphere_exp(x: torch.Tensor, u: torch.Tensor, *, project: bool = False) -> to
     onto T_x instead of raising ``ValueError``.
     """
     fn = "sphere_exp"
-    x, u = _prep_sphere(fn, project, x=x, u=u)
+    x, u = _prep_sphere(fn, x=x, u=u)
     x = _check_unit(x, "x", fn, project)
     u = _check_sphere_tangent(x, u, "u", fn, project)
     return _sphere_exp(x, u)
@@ -367,7 +368,7 @@ def sphere_log(x: torch.Tensor, y: torch.Tensor, *, project: bool = False) -> to
     deterministic direction described in the module docstring.
     """
     fn = "sphere_log"
-    x, y = _prep_sphere(fn, project, x=x, y=y)
+    x, y = _prep_sphere(fn, x=x, y=y)
     x = _check_unit(x, "x", fn, project)
     y = _check_unit(y, "y", fn, project)
     return _sphere_log_theta(x, y)[0]
@@ -380,7 +381,7 @@ def sphere_dist(x: torch.Tensor, y: torch.Tensor, *, project: bool = False) -> t
     The gradient at x = y is 0 (a subgradient of the non-differentiable point).
     """
     fn = "sphere_dist"
-    x, y = _prep_sphere(fn, project, x=x, y=y)
+    x, y = _prep_sphere(fn, x=x, y=y)
     x = _check_unit(x, "x", fn, project)
     y = _check_unit(y, "y", fn, project)
     return _sphere_log_theta(x, y)[1].squeeze(-1)
@@ -393,7 +394,7 @@ def sphere_transport_matrix(x: torch.Tensor, y: torch.Tensor, *, project: bool =
     I + ((cos θ − 1)/θ² u − (sin θ/θ) x) uᵀ, which is smooth (A = I at x = y).
     """
     fn = "sphere_transport_matrix"
-    x, y = _prep_sphere(fn, project, x=x, y=y)
+    x, y = _prep_sphere(fn, x=x, y=y)
     x = _check_unit(x, "x", fn, project)
     y = _check_unit(y, "y", fn, project)
     return _sphere_transport_matrix(x, y)
@@ -410,7 +411,7 @@ def sphere_transport(x: torch.Tensor, y: torch.Tensor, v: torch.Tensor, *, form:
     fn = "sphere_transport"
     if form not in (182, 183):
         raise ValueError(f"{fn}: argument 'form' must be 182 or 183 (seed equation number), got {form!r}")
-    x, y, v = _prep_sphere(fn, project, x=x, y=y, v=v)
+    x, y, v = _prep_sphere(fn, x=x, y=y, v=v)
     x = _check_unit(x, "x", fn, project)
     y = _check_unit(y, "y", fn, project)
     v = _check_sphere_tangent(x, v, "v", fn, project)
@@ -702,6 +703,9 @@ class RiemannianManifold(Protocol):
 
     def check_point(self, x: torch.Tensor, name: str = "x", fn: str = "",
                     project: bool = False) -> torch.Tensor: ...
+
+    def check_tangent(self, x: torch.Tensor, v: torch.Tensor, name: str = "v", fn: str = "",
+                      project: bool = False) -> torch.Tensor: ...
 
     def exp_at(self, x: torch.Tensor, v: torch.Tensor, *, check: bool = True,
                project: bool = False) -> torch.Tensor: ...
@@ -1075,6 +1079,12 @@ def karcher_mean(manifold: RiemannianManifold, points: torch.Tensor, weights: to
     points ``(*B, N, *point_shape)``; weights ``(*B, N)`` non-negative (normalized here; uniform if None);
     init ``(*B, *point_shape)`` (default: the sample with the largest weight); tol default eps^0.75
     of the dtype (≈1.8e-12 float64, 6.4e-6 float32). ``project`` applies to points and init.
+
+    Typical data (spread ≲ 0.3 rad) converge in 2–6 iterations. The unit Gauss–Newton step assumes the
+    data are concentrated: on the sphere, samples spread over more than about π/2 from the mean can
+    make it oscillate; such elements end with ``converged=False`` (the batch is unaffected).
+    Checks run once at entry (they synchronize with the device); the loop runs until every element
+    has converged, with one host synchronization per iteration.
     """
     fn = "karcher_mean"
     _check_manifold(manifold, fn)
@@ -1243,6 +1253,7 @@ def gaussian_product(manifold: RiemannianManifold, means: torch.Tensor, covarian
         mu = means.select(len(batch), 0)
     else:
         check_tensor(init, tuple(manifold.point_shape), "init", fn)
+        check_same_device(fn, means=means, init=init)
         mu = manifold.check_point(init, "init", fn, project).expand(*batch, *manifold.point_shape)
     if max_iter < 1:
         raise ValueError(f"{fn}: argument 'max_iter' must be >= 1, got {max_iter}")

@@ -648,7 +648,8 @@ def test_project_gradients_are_finite_at_exact_points():
 def test_example_riemannian_mean(tmp_path):
     from examples.riemannian_mean import main
 
-    out = main(n_samples=200, seed=0, plot=False, out_dir=tmp_path)
+    out = main(n_samples=200, seed=0, plot=True, out_dir=tmp_path)
+    assert (tmp_path / "convergence.png").stat().st_size > 0
     assert out["spd"]["converged"] and out["quaternion"]["converged"]
     assert out["spd"]["error"] < out["spd"]["bound"]
     assert out["quaternion"]["error_rad"] < out["quaternion"]["bound_rad"]
