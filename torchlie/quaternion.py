@@ -271,8 +271,8 @@ def slerp(p: torch.Tensor, q: torch.Tensor, t) -> torch.Tensor:
 
     ``p ⊗ exp(t · log(p* ⊗ q))``: ``log`` picks the sign of ``q`` nearer to ``p``, so the path turns by at
     most π, and its small-angle series keeps values and gradients exact when ``p ≈ q``. ``t`` is a float or
-    a floating tensor of shape ``(*T)`` broadcasting with the batch dims; ``t = 0`` gives ``p`` and ``t = 1``
-    gives ``±q`` (the sign nearer to ``p``).
+    a tensor of ``p``'s dtype and device, of shape ``(*T)``, broadcasting with the batch dims; ``t = 0``
+    gives ``p`` and ``t = 1`` gives ``±q`` (the sign nearer to ``p``).
     """
     p = check_tensor(p, (4,), "p", "quaternion.slerp")
     q = check_tensor(q, (4,), "q", "quaternion.slerp")

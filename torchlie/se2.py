@@ -245,8 +245,8 @@ def random(*batch: int, generator: torch.Generator | None = None, dtype: torch.d
 def interpolate(X: torch.Tensor, Y: torch.Tensor, t) -> torch.Tensor:
     """Geodesic ``X exp(t log(X⁻¹ Y))`` between motions ``(*, 3, 3)`` (a constant-twist screw path).
 
-    ``t`` is a float or a floating tensor of shape ``(*T)`` that broadcasts with the batch dims of ``X``
-    and ``Y``; ``t = 0`` gives ``X``, ``t = 1`` gives ``Y``.
+    ``t`` is a float or a tensor of ``X``'s dtype and device (nothing is cast), of shape ``(*T)``, that
+    broadcasts with the batch dims of ``X`` and ``Y``; ``t = 0`` gives ``X``, ``t = 1`` gives ``Y``.
     """
     X = check_tensor(X, (3, 3), "X", "se2.interpolate")
     Y = check_tensor(Y, (3, 3), "Y", "se2.interpolate")

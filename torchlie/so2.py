@@ -207,9 +207,10 @@ def random(*batch: int, generator: torch.Generator | None = None, dtype: torch.d
 def interpolate(X: torch.Tensor, Y: torch.Tensor, t) -> torch.Tensor:
     """Geodesic ``X exp(t log(X⁻¹ Y))`` between rotations ``(*, 2, 2)``.
 
-    ``t`` is a float or a floating tensor of shape ``(*T)`` that broadcasts with the batch dims of
-    ``X`` and ``Y`` (e.g. ``X`` ``(B, 2, 2)`` and ``t`` ``(T, 1)`` give ``(T, B, 2, 2)``); ``t = 0`` gives
-    ``X``, ``t = 1`` gives ``Y``. Between antipodal rotations (relative angle π) the path turns by +π.
+    ``t`` is a float or a tensor of ``X``'s dtype and device (nothing is cast), of shape ``(*T)``, that
+    broadcasts with the batch dims of ``X`` and ``Y`` (e.g. ``X`` ``(B, 2, 2)`` and ``t`` ``(T, 1)`` give
+    ``(T, B, 2, 2)``); ``t = 0`` gives ``X``, ``t = 1`` gives ``Y``. Between antipodal rotations (relative
+    angle π) the path turns by +π.
     """
     X = check_tensor(X, (2, 2), "X", "so2.interpolate")
     Y = check_tensor(Y, (2, 2), "Y", "so2.interpolate")

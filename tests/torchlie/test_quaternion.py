@@ -289,3 +289,15 @@ def test_nan_stays_in_its_element():
     assert torch.isfinite(q[~bad]).all() and torch.isnan(q[bad]).any()
     for out in (Q.log(q), Q.multiply(q, q), Q.slerp(q, q.flip(0)[[4, 3, 2, 1, 0]], 0.5), Q.to_matrix(q)):
         assert torch.isfinite(out[~bad]).all() and torch.isnan(out[bad]).any()
+
+
+def test_device_follows_input_and_mismatch_is_rejected():
+    m = torch.device("meta")
+    for f, shape in ((Q.from_matrix, (4, 3, 3)), (Q.log, (4, 4)), (Q.exp, (4, 3)), (Q.to_matrix, (4, 4))):
+        assert f(torch.zeros(*shape, device=m)).device == m, f.__name__
+    assert Q.slerp(torch.zeros(2, 4, device=m), torch.zeros(2, 4, device=m), 0.5).device == m
+    assert Q.random(2, device=m).device == m and Q.identity(2, device=m).device == m
+    with pytest.raises(ValueError, match="'q' and 'p' are on different devices"):
+        Q.act(torch.zeros(4), torch.zeros(3, device=m))
+    with pytest.raises(ValueError, match="'p' and 't' are on different devices"):
+        Q.slerp(torch.zeros(4), torch.zeros(4), torch.tensor(0.5, device=m))

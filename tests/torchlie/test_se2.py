@@ -87,6 +87,10 @@ def test_group_axioms(a, b, c):
     # exp of multiples of one tangent form a one-parameter subgroup
     x = torch.tensor(a, dtype=F64)
     torch.testing.assert_close(se2.compose(se2.exp(0.3 * x), se2.exp(0.7 * x)), A, atol=1e-13, rtol=0)
+    # round trips: exp(log(A)) = A and log(exp(x)) = x for principal θ
+    torch.testing.assert_close(se2.exp(se2.log(A)), A, atol=1e-13, rtol=0)
+    if x[2] > -math.pi:
+        torch.testing.assert_close(se2.log(A), x, atol=1e-12, rtol=0)
 
 
 @SETTINGS
@@ -250,3 +254,15 @@ def test_nan_stays_in_its_element():
     bad = torch.tensor([False, False, True, False, True, False])
     for out in (se2.exp(x), se2.left_jacobian(x), se2.left_jacobian_inv(x), se2.log(se2.exp(x))):
         assert torch.isfinite(out[~bad]).all() and torch.isnan(out[bad]).any()
+
+
+def test_device_follows_input_and_mismatch_is_rejected():
+    m = torch.device("meta")
+    cases = ((se2.exp, (4, 3)), (se2.log, (4, 3, 3)), (se2.left_jacobian_inv, (4, 3)), (se2.adjoint, (3, 3)))
+    for f, shape in cases:
+        assert f(torch.zeros(*shape, device=m)).device == m, f.__name__
+    assert se2.random(2, device=m).device == m and se2.identity(2, device=m).device == m
+    with pytest.raises(ValueError, match="'X' and 'Y' are on different devices"):
+        se2.compose(torch.zeros(3, 3), torch.zeros(3, 3, device=m))
+    with pytest.raises(ValueError, match="'X' and 't' are on different devices"):
+        se2.interpolate(torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(1, device=m))

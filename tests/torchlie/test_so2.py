@@ -92,6 +92,10 @@ def test_group_axioms(a, b, c):
     AB = so2.exp(torch.tensor([a + b], dtype=F64))
     torch.testing.assert_close(so2.compose(A, B), AB, atol=1e-14, rtol=0)
     torch.testing.assert_close(so2.compose(A, B), so2.compose(B, A), atol=1e-15, rtol=0)
+    # round trips: exp(log(A)) = A, log(exp(a)) = a up to 2π (−π maps to +π)
+    torch.testing.assert_close(so2.exp(so2.log(A)), A, atol=1e-15, rtol=0)
+    d = so2.log(A).item() - a
+    assert abs(d) <= 1e-15 or abs(abs(d) - 2 * math.pi) <= 1e-15
 
 
 @SETTINGS
@@ -250,3 +254,15 @@ def test_nan_stays_in_its_element():
     assert torch.isnan(X[bad]).all() and torch.isfinite(X[~bad]).all()
     assert torch.isfinite(so2.log(X)[~bad]).all() and torch.isnan(so2.log(X)[bad]).all()
     assert torch.isfinite(so2.compose(X, so2.exp(x.flip(0)))[~bad & ~bad.flip(0)]).all()
+
+
+def test_device_follows_input_and_mismatch_is_rejected():
+    m = torch.device("meta")  # shape/dtype/device propagation without data
+    assert so2.exp(torch.zeros(4, 1, device=m)).device == m
+    assert so2.log(torch.zeros(4, 2, 2, device=m)).device == m
+    assert so2.identity(3, device=m).device == m
+    assert so2.interpolate(so2.identity(2, device=m), so2.identity(2, device=m), 0.5).device == m
+    with pytest.raises(ValueError, match="'X' and 'Y' are on different devices"):
+        so2.compose(torch.zeros(2, 2), torch.zeros(2, 2, device=m))
+    with pytest.raises(ValueError, match="'X' and 'p' are on different devices"):
+        so2.act(torch.zeros(2, 2), torch.zeros(2, device=m))
