@@ -124,15 +124,6 @@ def _batch_of(t: torch.Tensor, k: int) -> torch.Size:
     return t.shape[: t.dim() - k]
 
 
-def _broadcast_batch(*pairs: tuple[torch.Tensor, int], fn: str = "", names: Iterable[str] = ()) -> torch.Size:
-    shapes = [_batch_of(t, k) for t, k in pairs]
-    try:
-        return torch.broadcast_shapes(*shapes)
-    except RuntimeError as e:
-        detail = ", ".join(f"'{n}' {tuple(s)}" for n, s in zip(names, shapes))
-        raise ValueError(f"{fn}: batch shapes do not broadcast: {detail}") from e
-
-
 def _expand_to(t: torch.Tensor, k: int, batch: torch.Size) -> torch.Tensor:
     if _batch_of(t, k) == batch:
         return t
@@ -234,7 +225,7 @@ class Manifold:
         check_tensor(x, self.event_shape, name, fn)
         if project:
             return self._project(x)
-        err = self._membership_error(x)
+        err = self._membership_error(x.detach())
         tol = manifold_tolerance(x.dtype)
         bad = ~(err <= tol)  # NaN counts as bad
         if _any_true(bad, fn, name, self._describe()):
@@ -380,6 +371,32 @@ def _rotation_error(R: torch.Tensor) -> torch.Tensor:
     return torch.maximum(orth, (det - 1).abs())
 
 
+def _project_rotation(M: torch.Tensor) -> torch.Tensor:
+    """Nearest rotation (Frobenius) to ``M`` ``(*, 3, 3)``, with a first derivative that is exact.
+
+    The value is the SVD solution ``U diag(1, 1, det(UVᵀ)) Vᵀ`` (the same as ``so3.project``).  The
+    derivative of that SVD through autograd is undefined at the points that matter most here —
+    rotations themselves, where all singular values coincide — so it is attached analytically:
+    with signed singular values σ = D S, ``dR = U_D Ω Vᵀ``, ``Ω_ij = (A − Aᵀ)_ij / (σ_i + σ_j)``,
+    ``A = U_Dᵀ dM V`` (from ``M = R H``, ``Rᵀ dM − dMᵀ R = ΩH + HΩ`` in the V basis).  It is
+    finite whenever the nearest rotation is unique (σ_i + σ_j ≠ 0).  Higher derivatives are not
+    provided (U, S, V enter as constants).
+    """
+    Md = M.detach()
+    U, S, Vh = torch.linalg.svd(Md)
+    det = torch.linalg.det(U @ Vh)
+    sign = torch.where(det < 0, -1.0, 1.0).to(S.dtype).unsqueeze(-1)
+    d = torch.cat((torch.ones_like(S[..., :2]), sign), -1)
+    Ud = U * d.unsqueeze(-2)
+    R = Ud @ Vh
+    sig = S * d
+    den = sig.unsqueeze(-1) + sig.unsqueeze(-2)
+    ok = den.abs() > torch.finfo(S.dtype).eps * S[..., :1, None].clamp(min=1.0)
+    Fm = torch.where(ok, 1 / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(den))
+    A = Ud.transpose(-1, -2) @ (M - Md) @ Vh.transpose(-1, -2)
+    return R + Ud @ (Fm * (A - A.transpose(-1, -2))) @ Vh
+
+
 # ------------------------------------------------------------------------------------------------
 # primitive manifolds
 # ------------------------------------------------------------------------------------------------
@@ -513,7 +530,7 @@ class SO3(Manifold):
         return _rotation_error(x)
 
     def _project(self, x):
-        return _group("so3").project(x)
+        return _project_rotation(x)
 
     def _boxplus(self, x, delta):
         return x @ _group("so3").exp(delta)
@@ -567,7 +584,7 @@ class SE3(Manifold):
         return torch.maximum(_rotation_error(x[..., :3, :3]), row)
 
     def _project(self, x):
-        R = _group("so3").project(x[..., :3, :3])
+        R = _project_rotation(x[..., :3, :3])
         top = torch.cat((R, x[..., :3, 3:]), -1)
         last = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=x.dtype, device=x.device).expand(*x.shape[:-2], 1, 4)
         return torch.cat((top, last), -2)
