@@ -19,7 +19,8 @@ _COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
     (("bench", "lie"), "liecontrol.bench.lie", "Lie-group ops vs pypose/roma: speed and round-trip error"),
     (("bench", "lqr"), "liecontrol.bench.lqr", "LQR vs pypose and mpc.pytorch"),
     (("bench", "ilqr"), "liecontrol.bench.ilqr", "iLQR swing-up vs mpc.pytorch box-DDP"),
-    (("reproduce", "me2"), "liecontrol.reproduce.me2", "seed 000 Sec. 4: ME2 horizon prediction, Table 1, Fig. 3-4"),
+    (("reproduce", "me2"), "liecontrol.reproduce.me2",
+     "seed 000 Sec. 4: ME2 horizon prediction, Table 1, Fig. 3-4"),
 ]
 
 _GROUP_HELP = {

@@ -1,0 +1,280 @@
+"""``liecontrol bench lie``: torchlie's group operations against pypose and roma, in one run.
+
+For every group (so3, se3), op (exp, log, compose, act, inverse, Jr), dtype and batch size, each
+library is timed on its own native representation (pypose: quaternion LieTensors; roma and torchlie:
+rotation/homogeneous matrices) as the median of ``--repeats`` runs after warm-up, and the ratio
+anchor/ours is reported.  ``ours_compiled_ms`` is the same torchlie function under
+``torch.compile(fullgraph=True)`` — something neither anchor supports.  The round-trip error
+``max |exp(log(X)) − X|`` is measured per library on rotation angles uniform in [0, π)
+(``roundtrip_err``) and on angles within 1e-9..1e-3 of 0 and π (``roundtrip_err_edges``), always in
+matrix form so the libraries are compared on one metric.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+import torch
+
+from liecontrol.bench._common import print_table, time_ms, write_json
+from torchlie import se3, so3
+
+__all__ = ["add_arguments", "run", "measure"]
+
+OPS = ("exp", "log", "compose", "act", "inverse", "Jr")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--batch", type=int, nargs="+", default=[1, 1000, 100000], help="batch sizes")
+    p.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
+    p.add_argument("--groups", nargs="+", default=["so3", "se3"], choices=["so3", "se3"])
+    p.add_argument("--ops", nargs="+", default=list(OPS), choices=list(OPS))
+    p.add_argument("--device", nargs="+", default=None,
+                   help="devices (default: cpu, plus cuda when available)")
+    p.add_argument("--repeats", type=int, default=9, help="timed runs per measurement (median; ≥ 7)")
+    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    p.add_argument("--no-compile", action="store_true", help="skip the torch.compile column")
+    p.add_argument("--json", default=None, help="write the records to this JSON file")
+
+
+# ------------------------------------------------------------------------------------------- samples
+
+def _tangents(group: str, n: int, dtype, device, gen: torch.Generator, edges: bool = False) -> torch.Tensor:
+    if edges:
+        base = torch.tensor([0.0, 1e-9, 1e-6, 1e-3], dtype=torch.float64)
+        th = torch.cat((base, math.pi - base[1:]))
+        th = th.repeat(n // len(th) + 1)[:n]
+    else:
+        th = math.pi * torch.rand(n, generator=gen, dtype=torch.float64)
+    axis = torch.nn.functional.normalize(torch.randn(n, 3, generator=gen, dtype=torch.float64), dim=-1)
+    w = th.unsqueeze(-1) * axis
+    if group == "se3":
+        w = torch.cat((torch.randn(n, 3, generator=gen, dtype=torch.float64), w), -1)
+    return w.to(dtype=dtype, device=device)
+
+
+# ------------------------------------------------------------------------------------------- libraries
+
+class _Ours:
+    name = "torchlie"
+
+    def __init__(self, group):
+        self.m = so3 if group == "so3" else se3
+
+    def from_matrix(self, X):
+        return X
+
+    def to_matrix(self, X):
+        return X
+
+    def fns(self, X, Y, x, p):
+        m = self.m
+        return {
+            "exp": (m.exp, (x,)),
+            "log": (m.log, (X,)),
+            "compose": (m.compose, (X, Y)),
+            "act": (m.act, (X, p)),
+            "inverse": (m.inverse, (X,)),
+            "Jr": (m.right_jacobian, (x,)),
+        }
+
+    def roundtrip(self, X):
+        return self.m.exp(self.m.log(X))
+
+
+class _Pypose:
+    name = "pypose"
+
+    def __init__(self, group):
+        import pypose as pp
+
+        self.pp, self.group = pp, group
+
+    def from_matrix(self, X):
+        pp = self.pp
+        return pp.mat2SO3(X, check=False) if self.group == "so3" else pp.mat2SE3(X, check=False)
+
+    def to_matrix(self, X):
+        return X.matrix()
+
+    def fns(self, X, Y, x, p):
+        pp = self.pp
+        xl = pp.so3(x) if self.group == "so3" else pp.se3(x)
+        out = {
+            "exp": (lambda a: a.Exp(), (xl,)),
+            "log": (lambda a: a.Log(), (X,)),
+            "compose": (lambda a, b: a @ b, (X, Y)),
+            "act": (lambda a, b: a.Act(b), (X, p)),
+            "inverse": (lambda a: a.Inv(), (X,)),
+        }
+        if self.group == "so3":
+            out["Jr"] = (lambda a: a.Jr(), (xl,))
+        return out
+
+    def roundtrip(self, X):
+        return X.Log().Exp()
+
+
+class _Roma:
+    name = "roma"
+
+    def __init__(self, group):
+        if group != "so3":
+            raise NotImplementedError("roma has no SE(3) exponential/logarithm")
+        import roma
+
+        self.roma = roma
+
+    def from_matrix(self, X):
+        return X
+
+    def to_matrix(self, X):
+        return X
+
+    def fns(self, X, Y, x, p):
+        r = self.roma
+        return {
+            "exp": (r.rotvec_to_rotmat, (x,)),
+            "log": (r.rotmat_to_rotvec, (X,)),
+            "compose": (lambda a, b: r.rotmat_composition((a, b)), (X, Y)),
+            "act": (lambda a, b: (a @ b.unsqueeze(-1)).squeeze(-1), (X, p)),
+            "inverse": (r.rotmat_inverse, (X,)),
+        }
+
+    def roundtrip(self, X):
+        return self.roma.rotvec_to_rotmat(self.roma.rotmat_to_rotvec(X))
+
+
+def _anchor(cls, group):
+    try:
+        return cls(group), None
+    except ImportError as e:
+        return None, f"missing ({e.name or e})"
+    except NotImplementedError as e:
+        return None, f"n/a ({e})"
+
+
+def _roundtrip_err(lib, X_mat) -> float:
+    with torch.no_grad():
+        Xn = lib.from_matrix(X_mat)
+        back = lib.to_matrix(lib.roundtrip(Xn))
+        return (back - X_mat).abs().max().item()
+
+
+# ------------------------------------------------------------------------------------------- measurement
+
+def measure(groups=("so3", "se3"), ops=OPS, dtypes=("float32", "float64"), batches=(1, 1000, 100000),
+            devices=None, repeats: int = 9, compile_ours: bool = True, log=print) -> list[dict]:
+    """Run the benchmark and return its records (see the module docstring)."""
+    if devices is None:
+        devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    records: list[dict] = []
+    gen = torch.Generator().manual_seed(0)
+    for device in devices:
+        for group in groups:
+            ours = _Ours(group)
+            anchors = [(_Pypose, *_anchor(_Pypose, group)), (_Roma, *_anchor(_Roma, group))]
+            for dtype_name in dtypes:
+                dtype = getattr(torch, dtype_name)
+                # accuracy, once per (group, dtype, device), on 20000 samples
+                Xacc = ours.m.exp(_tangents(group, 20000, torch.float64, device, gen))
+                Xedge = ours.m.exp(_tangents(group, 20000, torch.float64, device, gen, edges=True))
+                err = {"torchlie": (_roundtrip_err(ours, Xacc.to(dtype)),
+                                    _roundtrip_err(ours, Xedge.to(dtype)))}
+                for cls, lib, _why in anchors:
+                    if lib is not None:
+                        try:
+                            err[cls.name] = (_roundtrip_err(lib, Xacc.to(dtype)),
+                                             _roundtrip_err(lib, Xedge.to(dtype)))
+                        except Exception as e:  # an anchor's failure is its result
+                            err[cls.name] = (f"failed: {type(e).__name__}", None)
+                for batch in batches:
+                    x = _tangents(group, batch, dtype, device, gen)
+                    X = ours.m.exp(x)
+                    Y = ours.m.exp(_tangents(group, batch, dtype, device, gen))
+                    p = torch.randn(batch, 3, generator=gen, dtype=torch.float64).to(dtype=dtype,
+                                                                                     device=device)
+                    our_fns = ours.fns(X, Y, x, p)
+                    for op in ops:
+                        fn, args = our_fns[op]
+                        ours_ms = time_ms(lambda fn=fn, args=args: fn(*args), repeats=repeats, device=device,
+                                          min_time_s=0.002)
+                        comp_ms = None
+                        if compile_ours:
+                            try:
+                                cf = torch.compile(fn, fullgraph=True, dynamic=False)
+                                comp_ms = time_ms(lambda cf=cf, args=args: cf(*args), repeats=repeats,
+                                                  device=device, min_time_s=0.002)
+                            except Exception as e:  # report, don't crash the benchmark
+                                log(f"torch.compile failed for {group}.{op}: {type(e).__name__}: {e}")
+                        for cls, lib, why in anchors:
+                            rec = {"group": group, "op": op, "dtype": dtype_name, "batch": batch,
+                                   "device": str(device), "ours_ms": ours_ms, "ours_compiled_ms": comp_ms,
+                                   "anchor": cls.name, "anchor_ms": None, "speedup": None,
+                                   "speedup_compiled": None,
+                                   "roundtrip_err": err["torchlie"][0],
+                                   "roundtrip_err_edges": err["torchlie"][1],
+                                   "anchor_roundtrip_err": None, "anchor_roundtrip_err_edges": None,
+                                   "anchor_status": "ok"}
+                            if lib is None:
+                                rec["anchor_status"] = why
+                                records.append(rec)
+                                continue
+                            rec["anchor_roundtrip_err"], rec["anchor_roundtrip_err_edges"] = err[cls.name]
+                            try:
+                                afns = lib.fns(lib.from_matrix(X), lib.from_matrix(Y), x, p)
+                            except Exception as e:
+                                rec["anchor_status"] = f"failed: {type(e).__name__}: {e}"
+                                records.append(rec)
+                                continue
+                            if op not in afns:
+                                rec["anchor_status"] = "n/a (op not provided)"
+                                records.append(rec)
+                                continue
+                            afn, aargs = afns[op]
+                            try:
+                                a_ms = time_ms(lambda afn=afn, aargs=aargs: afn(*aargs), repeats=repeats,
+                                               device=device, min_time_s=0.002)
+                            except Exception as e:
+                                rec["anchor_status"] = f"failed: {type(e).__name__}: {e}"
+                                records.append(rec)
+                                continue
+                            rec["anchor_ms"] = a_ms
+                            rec["speedup"] = a_ms / ours_ms
+                            rec["speedup_compiled"] = a_ms / comp_ms if comp_ms else None
+                            records.append(rec)
+    return records
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    records = measure(groups=args.groups, ops=args.ops, dtypes=args.dtype, batches=args.batch,
+                      devices=args.device, repeats=max(args.repeats, 1), compile_ours=not args.no_compile)
+    print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; times in ms (median of "
+          f"{args.repeats}); speedup = anchor_ms / ours_ms")
+    cols = ["group", "op", "dtype", "batch", "ours_ms", "ours_compiled_ms", "anchor", "anchor_ms", "speedup",
+            "speedup_compiled", "anchor_status"]
+    print_table(records, cols)
+    print()
+    print("round-trip error max|exp(log X) - X| (uniform angles in [0, pi) / within 1e-9..1e-3 of 0 and pi):")
+    seen = set()
+    acc_rows = []
+    for r in records:
+        key = (r["group"], r["dtype"], r["device"])
+        if key + ("torchlie",) not in seen:
+            seen.add(key + ("torchlie",))
+            acc_rows.append({"group": r["group"], "dtype": r["dtype"], "library": "torchlie",
+                             "roundtrip_err": r["roundtrip_err"], "edges": r["roundtrip_err_edges"]})
+        if r["anchor_status"] == "ok" or r["anchor_roundtrip_err"] is not None:
+            if key + (r["anchor"],) not in seen:
+                seen.add(key + (r["anchor"],))
+                acc_rows.append({"group": r["group"], "dtype": r["dtype"], "library": r["anchor"],
+                                 "roundtrip_err": r["anchor_roundtrip_err"],
+                                 "edges": r["anchor_roundtrip_err_edges"]})
+    print_table(acc_rows, ["group", "dtype", "library", "roundtrip_err", "edges"])
+    if args.json:
+        write_json(args.json, records)
+        print(f"wrote {len(records)} records to {args.json}")
+    return 0
