@@ -58,7 +58,8 @@ method raises ``ValueError`` naming the argument, or projects onto the manifold 
 ``project=True``.  The tolerance depends on the dtype, ``sqrt(eps)`` (float64 1.5e-8,
 float32 3.5e-4; see :func:`manifold_tolerance`).  The checks are Python-level branches on data,
 so inside ``torch.func.vmap`` check the points beforehand (``M.check(x)``) and pass
-``project=True`` (or call the manifold outside the vmap).
+``check=False`` (the explicit "already checked" switch, also for solvers' inner loops) or
+``project=True``.
 
 Product states (:class:`ProductState`).  A product point is an immutable mapping of component
 names to tensors (``x.p``, ``x.v``, ``x.R``), registered as a ``torch.utils._pytree`` node, with
@@ -136,7 +137,8 @@ def _any_true(mask: torch.Tensor, fn: str, name: str, what: str) -> bool:
     except RuntimeError as e:  # data-dependent control flow inside torch.func.vmap
         raise ValueError(
             f"{fn}: cannot check that argument '{name}' lies on {what} inside torch.func.vmap; "
-            "check the points before the vmap (manifold.check(x)) and pass project=True inside it"
+            "check the points before the vmap (manifold.check(x)) and pass check=False (or "
+            "project=True) inside it"
         ) from e
 
 
@@ -165,8 +167,10 @@ class Manifold:
 
     Every method that takes points checks them (``ValueError`` naming the argument when a point is
     off the manifold, tolerance :func:`manifold_tolerance`) unless called with ``project=True``,
-    which projects them first.  Points are plain tensors for the primitive manifolds and
-    :class:`ProductState` for :class:`ProductManifold`.  dtype and device follow the inputs.
+    which projects them first, or ``check=False``, with which the caller vouches for points it
+    has already checked (inside ``torch.func.vmap``, or in a solver's inner loop).  Points are
+    plain tensors for the primitive manifolds and :class:`ProductState` for
+    :class:`ProductManifold`.  dtype and device follow the inputs.
     """
 
     # --- implemented by subclasses ----------------------------------------------------------------
@@ -221,10 +225,12 @@ class Manifold:
     def _batch_shape(self, x) -> torch.Size:
         return _batch_of(x, len(self.event_shape))
 
-    def _check_point(self, x, name: str, fn: str, project: bool):
+    def _check_point(self, x, name: str, fn: str, project: bool, check: bool = True):
         check_tensor(x, self.event_shape, name, fn)
         if project:
             return self._project(x)
+        if not check:
+            return x
         err = self._membership_error(x.detach())
         tol = manifold_tolerance(x.dtype)
         bad = ~(err <= tol)  # NaN counts as bad
@@ -253,48 +259,50 @@ class Manifold:
         leaf = x._first_leaf() if isinstance(x, ProductState) else x
         check_same_device(fn, x=leaf, **tensors)
 
-    def boxplus(self, x, delta: torch.Tensor, *, project: bool = False):
+    def boxplus(self, x, delta: torch.Tensor, *, project: bool = False, check: bool = True):
         """x ⊞ δ with δ ``(*, n)`` in the homeomorphic space (Eq. 1, Table I)."""
         fn = f"{self._name}.boxplus"
-        x = self._check_point(x, "x", fn, project)
+        x = self._check_point(x, "x", fn, project, check)
         delta = self._vec(delta, self.dim, "delta", fn)
         self._same_device(fn, x, delta=delta)
         return self._boxplus(x, delta)
 
-    def boxminus(self, y, x, *, project: bool = False) -> torch.Tensor:
+    def boxminus(self, y, x, *, project: bool = False, check: bool = True) -> torch.Tensor:
         """y ⊟ x ``(*, n)``: the perturbation taking x to y (Eq. 1, Table I)."""
         fn = f"{self._name}.boxminus"
-        y = self._check_point(y, "y", fn, project)
-        x = self._check_point(x, "x", fn, project)
+        y = self._check_point(y, "y", fn, project, check)
+        x = self._check_point(x, "x", fn, project, check)
         self._same_device(fn, x, y=y._first_leaf() if isinstance(y, ProductState) else y)
         return self._boxminus(y, x)
 
-    def oplus(self, x, delta_e: torch.Tensor, *, project: bool = False):
+    def oplus(self, x, delta_e: torch.Tensor, *, project: bool = False, check: bool = True):
         """x ⊕ δᵉ with the exogenous perturbation δᵉ ``(*, l)`` (Eq. 3, Table I)."""
         fn = f"{self._name}.oplus"
-        x = self._check_point(x, "x", fn, project)
+        x = self._check_point(x, "x", fn, project, check)
         delta_e = self._vec(delta_e, self.ext_dim, "delta_e", fn)
         self._same_device(fn, x, delta_e=delta_e)
         return self._oplus(x, delta_e)
 
-    def _prep_G(self, x_d, v, fn: str, project: bool):
-        x_d = self._check_point(x_d, "x_d", fn, project)
+    def _prep_G(self, x_d, v, fn: str, project: bool, check: bool):
+        x_d = self._check_point(x_d, "x_d", fn, project, check)
         v = self._vec(v, self.ext_dim, "v", fn)
         self._same_device(fn, x_d, v=v)
         return x_d, v
 
-    def G_x(self, x_d, v: torch.Tensor, *, exact: bool = False, project: bool = False) -> torch.Tensor:
+    def G_x(self, x_d, v: torch.Tensor, *, exact: bool = False, project: bool = False,
+            check: bool = True) -> torch.Tensor:
         """∂/∂δ [((x_d ⊞ δ) ⊕ v) ⊟ (x_d ⊕ v)] at δ = 0, ``(*, n, n)`` (Eq. 23, Table I)."""
         fn = f"{self._name}.G_x"
-        x_d, v = self._prep_G(x_d, v, fn, project)
+        x_d, v = self._prep_G(x_d, v, fn, project, check)
         if exact:
             return self._jacobian_at_zero(x_d, v, "x")
         return self._G_x(x_d, v)
 
-    def G_f(self, x_d, v: torch.Tensor, *, exact: bool = False, project: bool = False) -> torch.Tensor:
+    def G_f(self, x_d, v: torch.Tensor, *, exact: bool = False, project: bool = False,
+            check: bool = True) -> torch.Tensor:
         """∂/∂δ [(x_d ⊕ (v + δ)) ⊟ (x_d ⊕ v)] at δ = 0, ``(*, n, l)`` (Eq. 23, Table I)."""
         fn = f"{self._name}.G_f"
-        x_d, v = self._prep_G(x_d, v, fn, project)
+        x_d, v = self._prep_G(x_d, v, fn, project, check)
         if exact:
             return self._jacobian_at_zero(x_d, v, "f")
         return self._G_f(x_d, v)
@@ -324,7 +332,8 @@ class Manifold:
         return J.movedim(0, -2)
 
     def linearize(self, x_d, v: torch.Tensor, dt: float, df_dx: torch.Tensor, df_du: torch.Tensor, *,
-                  exact: bool = False, project: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+                  exact: bool = False, project: bool = False, check: bool = True
+                  ) -> tuple[torch.Tensor, torch.Tensor]:
         """Error-system matrices of Eq. 21-22: ``F_x = G_x + Δt G_f ∂f/∂δx``, ``F_u = Δt G_f ∂f/∂δu``.
 
         ``df_dx`` ``(*, l, n)`` and ``df_du`` ``(*, l, m)`` are the system-specific parts (e.g.
@@ -338,8 +347,8 @@ class Manifold:
         if not (isinstance(df_du, torch.Tensor) and df_du.dim() >= 2 and df_du.shape[-2] == l):
             raise ValueError(f"{fn}: argument 'df_du' must have shape (*, {l}, m), "
                              f"got {tuple(getattr(df_du, 'shape', ()))}")
-        Gx = self.G_x(x_d, v, exact=exact, project=project)
-        Gf = self.G_f(x_d, v, exact=exact, project=project)
+        Gx = self.G_x(x_d, v, exact=exact, project=project, check=check)
+        Gf = self.G_f(x_d, v, exact=exact, project=project, check=check)
         return Gx + dt * (Gf @ df_dx), dt * (Gf @ df_du)
 
     def random(self, *batch, generator: torch.Generator | None = None, dtype: torch.dtype | None = None,
@@ -1383,7 +1392,7 @@ class ProductManifold(Manifold):
     def _describe(self) -> str:
         return repr(self)
 
-    def _check_point(self, x, name: str, fn: str, project: bool):
+    def _check_point(self, x, name: str, fn: str, project: bool, check: bool = True):
         if not isinstance(x, ProductState):
             raise TypeError(f"{fn}: argument '{name}' must be a ProductState with components "
                             f"{list(self.components)} (build one with manifold.state(...)), "
@@ -1394,7 +1403,7 @@ class ProductManifold(Manifold):
         out = {}
         dev = None
         for cname, m in self.components.items():
-            t = m._check_point(x[cname], f"{name}.{cname}", fn, project)
+            t = m._check_point(x[cname], f"{name}.{cname}", fn, project, check)
             leaf = t._first_leaf() if isinstance(t, ProductState) else t
             if dev is None:
                 dev, dt, first = leaf.device, leaf.dtype, cname

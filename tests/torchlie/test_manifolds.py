@@ -413,6 +413,8 @@ def test_off_manifold_points_raise_or_project():
     assert SO3()._membership_error(P).max() < 1e-14
     _close(P[[0, 1, 3]], R[[0, 1, 3]], 1e-14)
     _close(P[2], R[2], 1e-14)  # a scaled rotation projects back onto itself
+    # check=False: the caller vouches for the point, nothing is tested (its documented opt-out)
+    SO3().boxplus(Rbad, d, check=False)
     with pytest.raises(ValueError, match="argument 'y'"):
         SO3().boxminus(-R, R)  # det = -1: a reflection, not a rotation
     with pytest.raises(ValueError, match="argument 'x_d'"):
@@ -546,8 +548,17 @@ def test_product_state_autograd_and_torch_func():
     f = lambda xi, di: Q.boxplus(xi, di, project=True)
     out = torch.func.vmap(f)(x, d.detach())
     _close(out, Q.boxplus(x, d.detach()), 1e-12)
-    with pytest.raises(ValueError, match="vmap"):
+    with pytest.raises(ValueError, match="vmap.*check=False"):
         torch.func.vmap(lambda xi, di: Q.boxplus(xi, di))(x, d.detach())
+    Q.check(x)  # checked once, outside; then vouched for inside
+    out = torch.func.vmap(lambda xi, di: Q.boxplus(xi, di, check=False))(x, d.detach())
+    _close(out, Q.boxplus(x, d.detach()), 1e-12)
+    # per-sample Jacobians by vmap(jacrev) through the public API
+    J = torch.func.vmap(torch.func.jacrev(lambda xi, di: Q.boxminus(Q.boxplus(xi, di, check=False), xi,
+                                                                    check=False), argnums=1))(x, d.detach())
+    for i in range(3):
+        Ji = torch.func.jacrev(lambda di, i=i: Q.boxminus(Q.boxplus(x[i], di), x[i]))(d.detach()[i])
+        _close(J[i], Ji, 1e-12)
     # jacrev w.r.t. a ProductState input returns a ProductState of Jacobians
     J = torch.func.jacrev(lambda xi: Q.boxminus(xi, y[0]))(x[0])
     assert isinstance(J, ProductState) and J.p.shape == (9, 3)
