@@ -67,6 +67,7 @@ Conventions and definitions at the edges
 
 from __future__ import annotations
 
+import enum
 import math
 from dataclasses import dataclass
 from typing import NamedTuple, Protocol, runtime_checkable
@@ -100,6 +101,7 @@ __all__ = [
     "RiemannianManifold",
     "Sphere",
     "SPD",
+    "SPDTransport",
     "SO3",
     "SE3",
     "Euclidean",
@@ -825,19 +827,37 @@ class Sphere(_Base):
         return x.unsqueeze(-1)
 
 
+class SPDTransport(enum.Enum):
+    """Which parallel transport :class:`SPD` uses (e.g. for covariances in :func:`gaussian_product`)."""
+
+    SEED = "seed"            #: Eq. 187, A V Aᵀ with A = Y^{1/2} X^{-1/2} (transport along X → I → Y)
+    GEODESIC = "geodesic"    #: Levi-Civita transport along the geodesic X → Y (spd_transport_geodesic)
+
+
 @dataclass(frozen=True)
 class SPD(_Base):
     """SPD matrices ``(*, n, n)`` with the affine-invariant metric (Eq. 184-187).
 
     Tangent vectors are the whitened Mandel coordinates of :func:`spd_to_coords` (``m = n(n+1)/2``), in
-    which the seed's transport (Eq. 187) is the identity matrix.
+    which the seed's transport (Eq. 187, the default) is the identity matrix and the geodesic transport
+    (``transport_kind=SPDTransport.GEODESIC``) is the rotation C ↦ R C Rᵀ, R = Y^{-1/2} X^{1/2} W^{1/2},
+    W = X^{-1/2} Y X^{-1/2}.
+
+    Which to pick for :func:`gaussian_product`: Eq. 187 transports through the identity, an error that
+    is first order in the distance between the Gaussians when they lie far from I; with the geodesic
+    transport the product's fixed point is second-order close to the minimizer of the summed cost
+    (measured in the tests: relative residual gradient 2.7e-2 vs 1.0e-3 for means 0.1 apart).
     """
 
     n: int
+    transport_kind: SPDTransport = SPDTransport.SEED
 
     def __post_init__(self):
         if not isinstance(self.n, int) or self.n < 1:
             raise ValueError(f"SPD: argument 'n' must be an int >= 1, got {self.n!r}")
+        if not isinstance(self.transport_kind, SPDTransport):
+            raise TypeError("SPD: argument 'transport_kind' must be an SPDTransport, got "
+                            f"{self.transport_kind!r}")
 
     @property
     def point_shape(self) -> tuple[int, ...]:
@@ -862,9 +882,15 @@ class SPD(_Base):
         return _mat_to_vec(_spd_whitened_log(x, y))
 
     def _tm(self, x, y):
-        batch = torch.broadcast_shapes(x.shape[:-2], y.shape[:-2])
-        eye = torch.eye(self.tangent_size, dtype=x.dtype, device=x.device)
-        return eye.expand(*batch, self.tangent_size, self.tangent_size)
+        m = self.tangent_size
+        if self.transport_kind is SPDTransport.SEED:
+            batch = torch.broadcast_shapes(x.shape[:-2], y.shape[:-2])
+            return torch.eye(m, dtype=x.dtype, device=x.device).expand(*batch, m, m)
+        Xh, Xih = _symfun(x, "sqrt", "invsqrt")
+        R = _symfun(y, "invsqrt")[0] @ Xh @ _symfun(Xih @ y @ Xih, "sqrt")[0]      # orthogonal n×n
+        basis = _vec_to_mat(torch.eye(m, dtype=x.dtype, device=x.device), self.n)    # (m, n, n)
+        R = R.unsqueeze(-3)
+        return _mat_to_vec(R @ basis @ R.transpose(-1, -2)).transpose(-1, -2)        # column j = T e_j
 
 
 def _so3():
