@@ -15,6 +15,7 @@ __all__ = [
     "broadcast_leading",
     "small_angle_eps",
     "taylor_eps",
+    "interp_param",
 ]
 
 
@@ -81,3 +82,19 @@ def small_angle_eps(dtype: torch.dtype) -> float:
 def taylor_eps(dtype: torch.dtype) -> float:
     """Machine epsilon of ``dtype``."""
     return torch.finfo(dtype).eps
+
+
+def interp_param(t, like: torch.Tensor, fn: str) -> torch.Tensor:
+    """An interpolation parameter as a tensor of ``like``'s dtype and device.
+
+    A Python number is converted; a tensor must already have the right dtype (nothing is cast
+    silently) and is broadcast against the batch.
+    """
+    if isinstance(t, torch.Tensor):
+        if t.dtype != like.dtype:
+            raise TypeError(f"{fn}: argument 't' has dtype {t.dtype} but the poses are {like.dtype}; "
+                            "cast it explicitly")
+        if t.device != like.device:
+            raise ValueError(f"{fn}: argument 't' is on {t.device} but the poses are on {like.device}")
+        return t
+    return torch.as_tensor(float(t), dtype=like.dtype, device=like.device)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 
 from torchlie import so3 as _so3
-from torchlie._batch import broadcast_leading, check_same_device, check_tensor
+from torchlie._batch import broadcast_leading, check_same_device, check_tensor, interp_param
 
 __all__ = [
     "exp",
@@ -274,5 +274,5 @@ def interpolate(X0: torch.Tensor, X1: torch.Tensor, t) -> torch.Tensor:
     check_same_device("se3.interpolate", X0=X0, X1=X1)
     X0, X1 = broadcast_leading(X0, 2, X1, 2, "se3.interpolate", ("X0", "X1"))
     xi = _log(inverse(X0) @ X1)
-    t = torch.as_tensor(t, dtype=xi.dtype, device=xi.device)
+    t = interp_param(t, xi, "se3.interpolate")
     return X0 @ _exp(xi * t.unsqueeze(-1))

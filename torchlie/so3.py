@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import torch
 
-from torchlie._batch import broadcast_leading, check_same_device, check_tensor
+from torchlie._batch import broadcast_leading, check_same_device, check_tensor, interp_param
 
 __all__ = [
     "exp",
@@ -364,7 +364,7 @@ def interpolate(R0: torch.Tensor, R1: torch.Tensor, t) -> torch.Tensor:
     check_same_device("so3.interpolate", R0=R0, R1=R1)
     R0, R1 = broadcast_leading(R0, 2, R1, 2, "so3.interpolate", ("R0", "R1"))
     w = _log(R0.transpose(-1, -2) @ R1)
-    t = torch.as_tensor(t, dtype=w.dtype, device=w.device)
+    t = interp_param(t, w, "so3.interpolate")
     return R0 @ _exp(w * t.unsqueeze(-1))
 
 

@@ -1,0 +1,59 @@
+"""The ``liecontrol`` command: help, dispatch, the demo's outcome and the bench's records."""
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+from liecontrol import cli
+
+
+def test_help_lists_every_command(capsys):
+    assert cli.main([]) == 0
+    out = capsys.readouterr().out
+    for word in ("demo", "bench", "reproduce"):
+        assert word in out
+    with pytest.raises(SystemExit) as e:
+        cli.main(["--help"])
+    assert e.value.code == 0
+
+
+def test_unknown_command_is_a_usage_error():
+    with pytest.raises(SystemExit) as e:
+        cli.main(["frobnicate"])
+    assert e.value.code == 2
+
+
+def test_console_script_entry_point_runs():
+    r = subprocess.run([sys.executable, "-m", "liecontrol", "bench", "--help"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0 and "lie" in r.stdout
+
+
+def test_demo_reaches_its_accuracy(tmp_path, capsys):
+    assert cli.main(["demo", "--out", str(tmp_path), "--pairs", "64", "--clouds", "8"]) == 0
+    summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+    assert summary["interpolation"]["twist_constancy_err"] < 1e-10
+    assert summary["averaging"]["karcher_err_max"] < 1e-10
+    # the naive projected matrix average is biased; the Karcher mean is not
+    assert summary["averaging"]["naive_rotation_err_mean"] > 1e3 * summary["averaging"]["karcher_err_max"]
+    assert summary["roundtrip_edges"]["float64"] < 1e-12 and summary["roundtrip_edges"]["float32"] < 2e-5
+    for name in ("se3_interpolation.png", "se3_averaging.png"):
+        assert (tmp_path / "demo" / name).stat().st_size > 1000
+
+
+def test_bench_lie_writes_records(tmp_path):
+    path = tmp_path / "lie.json"
+    assert cli.main(["bench", "lie", "--batch", "8", "--dtype", "float64", "--ops", "exp", "log",
+                     "--repeats", "1", "--no-compile", "--json", str(path)]) == 0
+    recs = json.loads(path.read_text())
+    keys = {"group", "op", "dtype", "batch", "ours_ms", "anchor", "anchor_ms", "speedup", "roundtrip_err"}
+    assert recs and all(keys <= set(r) for r in recs)
+    assert {r["group"] for r in recs} == {"so3", "se3"} and {r["op"] for r in recs} == {"exp", "log"}
+    for r in recs:
+        assert r["roundtrip_err"] < 1e-12
+        if r["anchor_status"] == "ok":
+            assert r["speedup"] == pytest.approx(r["anchor_ms"] / r["ours_ms"])
+        else:  # a missing or inapplicable anchor is reported, not a crash
+            assert r["anchor_ms"] is None and r["anchor_status"]
