@@ -381,29 +381,8 @@ def _rotation_error(R: torch.Tensor) -> torch.Tensor:
 
 
 def _project_rotation(M: torch.Tensor) -> torch.Tensor:
-    """Nearest rotation (Frobenius) to ``M`` ``(*, 3, 3)``, with a first derivative that is exact.
-
-    The value is the SVD solution ``U diag(1, 1, det(UVᵀ)) Vᵀ`` (the same as ``so3.project``).  The
-    derivative of that SVD through autograd is undefined at the points that matter most here —
-    rotations themselves, where all singular values coincide — so it is attached analytically:
-    with signed singular values σ = D S, ``dR = U_D Ω Vᵀ``, ``Ω_ij = (A − Aᵀ)_ij / (σ_i + σ_j)``,
-    ``A = U_Dᵀ dM V`` (from ``M = R H``, ``Rᵀ dM − dMᵀ R = ΩH + HΩ`` in the V basis).  It is
-    finite whenever the nearest rotation is unique (σ_i + σ_j ≠ 0).  Higher derivatives are not
-    provided (U, S, V enter as constants).
-    """
-    Md = M.detach()
-    U, S, Vh = torch.linalg.svd(Md)
-    det = torch.linalg.det(U @ Vh)
-    sign = torch.where(det < 0, -1.0, 1.0).to(S.dtype).unsqueeze(-1)
-    d = torch.cat((torch.ones_like(S[..., :2]), sign), -1)
-    Ud = U * d.unsqueeze(-2)
-    R = Ud @ Vh
-    sig = S * d
-    den = sig.unsqueeze(-1) + sig.unsqueeze(-2)
-    ok = den.abs() > torch.finfo(S.dtype).eps * S[..., :1, None].clamp(min=1.0)
-    Fm = torch.where(ok, 1 / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(den))
-    A = Ud.transpose(-1, -2) @ (M - Md) @ Vh.transpose(-1, -2)
-    return R + Ud @ (Fm * (A - A.transpose(-1, -2))) @ Vh
+    """Nearest rotation to ``M`` (see :func:`torchlie.so3.project`, exact first derivative)."""
+    return _group("so3").project(M)
 
 
 # ------------------------------------------------------------------------------------------------

@@ -369,12 +369,27 @@ def interpolate(R0: torch.Tensor, R1: torch.Tensor, t) -> torch.Tensor:
 
 
 def project(M: torch.Tensor) -> torch.Tensor:
-    """Nearest rotation matrix (Frobenius) to ``M`` ``(*, 3, 3)``, via SVD with det fixed to +1."""
+    """Nearest rotation (Frobenius) to ``M`` ``(*, 3, 3)``, with a first derivative that is exact.
+
+    The value is the SVD solution ``U diag(1, 1, det(UVᵀ)) Vᵀ``.  The
+    derivative of that SVD through autograd is undefined at the points that matter most here —
+    rotations themselves, where all singular values coincide — so it is attached analytically:
+    with signed singular values σ = D S, ``dR = U_D Ω Vᵀ``, ``Ω_ij = (A − Aᵀ)_ij / (σ_i + σ_j)``,
+    ``A = U_Dᵀ dM V`` (from ``M = R H``, ``Rᵀ dM − dMᵀ R = ΩH + HΩ`` in the V basis).  It is
+    finite whenever the nearest rotation is unique (σ_i + σ_j ≠ 0).  Higher derivatives are not
+    provided (U, S, V enter as constants).
+    """
     check_tensor(M, (3, 3), "M", "so3.project")
-    U, _, Vh = torch.linalg.svd(M)
+    Md = M.detach()
+    U, S, Vh = torch.linalg.svd(Md)
     det = torch.linalg.det(U @ Vh)
-    D = torch.ones(*M.shape[:-2], 3, dtype=M.dtype, device=M.device)
-    D = torch.cat((D[..., :2], det.unsqueeze(-1)), -1)
-    return (U * D.unsqueeze(-2)) @ Vh
-
-
+    sign = torch.where(det < 0, -1.0, 1.0).to(S.dtype).unsqueeze(-1)
+    d = torch.cat((torch.ones_like(S[..., :2]), sign), -1)
+    Ud = U * d.unsqueeze(-2)
+    R = Ud @ Vh
+    sig = S * d
+    den = sig.unsqueeze(-1) + sig.unsqueeze(-2)
+    ok = den.abs() > torch.finfo(S.dtype).eps * S[..., :1, None].clamp(min=1.0)
+    Fm = torch.where(ok, 1 / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(den))
+    A = Ud.transpose(-1, -2) @ (M - Md) @ Vh.transpose(-1, -2)
+    return R + Ud @ (Fm * (A - A.transpose(-1, -2))) @ Vh
