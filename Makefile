@@ -3,7 +3,7 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: install demo test lint bench clean
+.PHONY: install demo test lint bench bench-env clean
 
 $(BIN)/liecontrol: pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -25,8 +25,18 @@ test: install
 lint: install
 	$(BIN)/ruff check .
 
-bench: install
+bench: install bench-env
 	$(BIN)/liecontrol bench lie --json out/bench_lie.json
+	$(BIN)/liecontrol bench lqr --json out/bench_lqr.json
+	$(BIN)/liecontrol bench ilqr --json out/bench_ilqr.json
+
+# mpc.pytorch pins numpy<2: it gets an environment of its own, called by the benchmarks in a subprocess.
+bench-env: .venv-mpc/bin/python
+
+.venv-mpc/bin/python:
+	$(PY) -m venv .venv-mpc
+	.venv-mpc/bin/pip install -q torch==2.13.0
+	.venv-mpc/bin/pip install -q 'numpy<2' mpc pypose
 
 clean:
-	rm -rf $(VENV) out .pytest_cache .ruff_cache build *.egg-info
+	rm -rf $(VENV) .venv-mpc out .pytest_cache .ruff_cache build *.egg-info
