@@ -1,0 +1,161 @@
+"""Implicit gradients of the LQR/LQT solution from its optimality (KKT) conditions.
+
+The idea is that of Amos et al. 2018, *Differentiable MPC for End-to-end Planning and Control*: the
+optimal trajectory ``z = (τ, λ)`` of an LQ problem solves a symmetric linear system ``M z = b``
+(stationarity of the Lagrangian and the dynamics), so for a loss ``ℓ(τ)`` with ``ḡ = ∂ℓ/∂τ``::
+
+    ∂ℓ/∂θ = dᵀ ∂b/∂θ - dᵀ (∂M/∂θ) z,       M d = [ḡ; 0].
+
+Solving ``M d = [ḡ; 0]`` is itself an LQ problem with the *same* Hessians and dynamics, linear cost
+terms ``-ḡ``, no drift and ``x_0 = 0``, so it reuses the factors of the forward Riccati pass: one extra
+backward sweep on vectors.  With this package's conventions (:mod:`controllers.problem`: stage cost
+``τᵀCτ + 2gᵀτ``, multipliers ``λ_t = P_t x_t + p_t``; KKT rows ``C_t τ_t + g_t + F_tᵀ λ_{t+1} = [λ_t; 0]``,
+``F_t τ_t + c_t = x_{t+1}``, ``x_0 = x_init``) the gradients are, with ``e = -d + ḡ_J τ`` (``ḡ_J`` the
+cotangent of the optimal cost, handled by the envelope theorem)::
+
+    ∂Q_t = sym(e_x x_tᵀ)   ∂R_t = sym(e_u u_tᵀ)   ∂N_t = e_x u_tᵀ + x_t e_uᵀ
+    ∂q_t = e_x + ḡ_J x_t   ∂r_t = e_u + ḡ_J u_t
+    ∂A_t = λ_{t+1} e_xᵀ + e_λ x_tᵀ   ∂B_t = λ_{t+1} e_uᵀ + e_λ u_tᵀ   (e_λ = -d_λ,t+1 + ḡ_J λ_{t+1})
+    ∂c_t = e_λ + ḡ_J λ_{t+1}          ∂x_init = -d_λ,0 + 2 ḡ_J λ_0
+
+Memory is O(T) (gains, Cholesky factors, value matrices, the trajectory) and the cost of the backward
+pass does not depend on how the forward solution was obtained.  The gains ``K``, ``k`` are outputs
+without a gradient in this mode (differentiate them with ``grad="unrolled"`` in
+:func:`controllers.riccati.lqr`).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from controllers import riccati as _ric
+
+__all__ = ["LQRFunction", "lqr_implicit", "adjoint_solve"]
+
+
+def adjoint_solve(Phi: torch.Tensor, B: torch.Tensor, K: torch.Tensor, L: torch.Tensor, P: torch.Tensor,
+                  qa: torch.Tensor, ra: torch.Tensor):
+    """Solve the LQ problem with the stored factors, linear terms ``qa (Bt, T+1, n)``, ``ra (Bt, T, m)``,
+    no drift and ``x_0 = 0``.
+
+    Args:
+        Phi: closed-loop ``A_t + B_t K_t`` ``(Bt, T, n, n)``; B: ``(bB, TB, n, m)``; K: ``(Bt, T, m, n)``;
+            L: Cholesky factors of ``H_uu`` ``(Bt, T, m, m)``; P: value matrices ``(Bt, T+1, n, n)``.
+
+    Returns:
+        ``(dx (Bt, T+1, n), du (Bt, T, m), dlam (Bt, T+1, n))``.
+    """
+    Bt, T, n = Phi.shape[0], Phi.shape[1], Phi.shape[-1]
+    dt, dev = Phi.dtype, Phi.device
+    # p_t = (q_t + K_tᵀ r_t) + Φ_tᵀ p_{t+1},   p_T = q_T
+    qhat = qa[:, :T] + torch.matmul(K.mT, ra.unsqueeze(-1)).squeeze(-1)
+    PhiT = Phi.mT.contiguous()
+    p = torch.empty(Bt, T + 1, n, 1, dtype=dt, device=dev)
+    cur = qa[:, T].unsqueeze(-1).contiguous()
+    p[:, T] = cur
+    qhat = qhat.unsqueeze(-1)
+    for t in range(T - 1, -1, -1):
+        cur = torch.baddbmm(qhat[:, t], PhiT[:, t], cur)
+        p[:, t] = cur
+    p = p.squeeze(-1)
+    # k_t = -H_uu⁻¹ (r_t + B_tᵀ p_{t+1})
+    Bb = B if B.shape[1] > 1 else B.expand(B.shape[0], T, *B.shape[2:])
+    qu = ra + torch.matmul(Bb.mT, p[:, 1:].unsqueeze(-1)).squeeze(-1)
+    kk = -torch.cholesky_solve(qu.unsqueeze(-1), L)  # (Bt, T, m, 1)
+    Bk = torch.matmul(Bb, kk).expand(Bt, T, n, 1).contiguous()
+    dx = torch.empty(Bt, T + 1, n, 1, dtype=dt, device=dev)
+    cur = torch.zeros(Bt, n, 1, dtype=dt, device=dev)
+    dx[:, 0] = cur
+    for t in range(T):
+        cur = torch.baddbmm(Bk[:, t], Phi[:, t], cur)
+        dx[:, t + 1] = cur
+    du = (torch.matmul(K, dx[:, :T]) + kk).squeeze(-1)
+    dlam = torch.matmul(P, dx).squeeze(-1) + p
+    return dx.squeeze(-1), du, dlam
+
+
+def _sym(M: torch.Tensor) -> torch.Tensor:
+    return 0.5 * (M + M.mT)
+
+
+def _outer(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    return a.unsqueeze(-1) * b.unsqueeze(-2)
+
+
+class LQRFunction(torch.autograd.Function):
+    """``(A, B, c, Q, R, N, q, r, x0) -> (x, u, J, K, k, ok)`` flattened over the batch ``(Bt, ...)``.
+
+    Forward: the Riccati solve of :mod:`controllers.riccati`.  Backward: the implicit gradient of the
+    module docstring.  ``K``, ``k``, ``info`` are non-differentiable outputs.
+    """
+
+    @staticmethod
+    def forward(ctx, A, B, c, Q, R, N, q, r, x0, T, bs):
+        n, m = A.shape[-1], B.shape[-1]
+        x, u, J, fac, F = _ric._solve_core(A, B, c, Q, R, N, q, r, x0, T, bs)
+        Bt = x.shape[0]
+        K = fac.Kt[..., :n]
+        k = fac.Kt[..., n]
+        ctx.T, ctx.bs, ctx.n, ctx.m = T, bs, n, m
+        ctx.shapes = [None if v is None else v.shape for v in (A, B, c, Q, R, N, q, r, x0)]
+        ctx.has = [v is not None for v in (A, B, c, Q, R, N, q, r, x0)]
+        Bflat = F[..., :n, :m]
+        ctx.save_for_backward(x, u, fac.Kt, fac.Huu, fac.V, F, Bflat)
+        ctx.mark_non_differentiable(K, k, fac.ok)
+        ctx.Bt = Bt
+        return x, u, J, K, k, fac.ok
+
+    @staticmethod
+    def backward(ctx, gx, gu, gJ, _gK, _gk, _ginfo):
+        x, u, Kt, Huu, V, F, Bm = ctx.saved_tensors
+        T, n, m, Bt, bs = ctx.T, ctx.n, ctx.m, ctx.Bt, ctx.bs
+        dt, dev = x.dtype, x.device
+        gx = torch.zeros(Bt, T + 1, n, dtype=dt, device=dev) if gx is None else gx
+        gu = torch.zeros(Bt, T, m, dtype=dt, device=dev) if gu is None else gu
+        gJ = torch.zeros(Bt, dtype=dt, device=dev) if gJ is None else gJ
+        K = Kt[..., :n]
+        Phi = _ric.closed_loop(F, Kt, m)[..., :n, :n]
+        P = V[..., :n, :n]
+        lam = torch.matmul(P, x.unsqueeze(-1)).squeeze(-1) + V[..., :n, n]
+        L, _ = torch.linalg.cholesky_ex(Huu)
+        dx, du, dlam = adjoint_solve(Phi, Bm, K, L, P, -gx, -gu)
+        gJ1 = gJ[:, None, None]
+        ex = -dx + gJ1 * x
+        eu = -du + gJ1 * u
+        el = -dlam[:, 1:] + gJ1 * lam[:, 1:]
+        needs = ctx.needs_input_grad
+        out = [None] * 11
+
+        def fit(g: torch.Tensor, idx: int, k: int) -> torch.Tensor:
+            shp = ctx.shapes[idx]
+            g = g.reshape(*bs, *g.shape[1:])
+            Tin = shp[len(shp) - k - 1] if idx != 8 else None
+            if Tin == 1 and g.shape[len(bs)] != 1:
+                g = g.sum(len(bs), keepdim=True)
+            return g.sum_to_size(shp)
+
+        if needs[0]:
+            out[0] = fit(_outer(lam[:, 1:], ex[:, :T]) + _outer(el, x[:, :T]), 0, 2)
+        if needs[1]:
+            out[1] = fit(_outer(lam[:, 1:], eu) + _outer(el, u), 1, 2)
+        if needs[2]:
+            out[2] = fit(el + gJ1 * lam[:, 1:], 2, 1)
+        if needs[3]:
+            out[3] = fit(_sym(_outer(ex, x)), 3, 2)
+        if needs[4]:
+            out[4] = fit(_sym(_outer(eu, u)), 4, 2)
+        if needs[5]:
+            out[5] = fit(_outer(ex[:, :T], u) + _outer(x[:, :T], eu), 5, 2)
+        if needs[6]:
+            out[6] = fit(ex + gJ1 * x, 6, 1)
+        if needs[7]:
+            out[7] = fit(eu + gJ1 * u, 7, 1)
+        if needs[8]:
+            g0 = -dlam[:, 0] + 2 * gJ[:, None] * lam[:, 0]
+            out[8] = g0.reshape(*bs, n).sum_to_size(ctx.shapes[8])
+        return tuple(out)
+
+
+def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size):
+    """Run :class:`LQRFunction`; returns flattened ``(x, u, J, K, k, info)``."""
+    return LQRFunction.apply(A, B, c, Q, R, N, q, r, x0, T, bs)

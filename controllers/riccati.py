@@ -1,0 +1,425 @@
+"""Recursive Riccati solution of batched LQR/LQT problems (seed 004 §7.4-7.6).
+
+The backward pass works on the *homogeneous* (augmented) state ``x̃ = [x; 1]`` of seed Eq. 76-78:
+affine dynamics ``c_t`` and linear cost terms (tracking references, Eq. 77) ride along in the extra
+coordinate, so one Riccati recursion on ``(n+1) × (n+1)`` matrices handles LQR, LQT and affine
+dynamics at once.  With ``z_t = [u_t; x_t; 1]``, ``F̃_t = [[B_t, A_t, c_t], [0, 0, 1]]`` and the stage
+matrix ``C̃_t = [[R, Nᵀ, r], [N, Q, q], [rᵀ, qᵀ, 0]]`` (cost ``z_tᵀ C̃_t z_t``, :mod:`controllers.problem`
+conventions) each step is::
+
+    H    = C̃_t + F̃_tᵀ Ṽ_{t+1} F̃_t                       (Eq. 73 with the augmented state)
+    L Lᵀ = H_uu                                          (batched Cholesky, never an inverse)
+    K̃_t  = -H_uu⁻¹ H_ux̃ = [K_t, k_t]                     (Eq. 74 / 78, here u_t = K_t x_t + k_t)
+    Ṽ_t  = H_x̃x̃ + H_x̃u K̃_t                                (Eq. 75)
+
+and ``Ṽ_t = [[P_t, p_t], [p_tᵀ, s_t]]`` is the value function ``x̃ᵀ Ṽ_t x̃``; the optimal cost is
+``x̃_0ᵀ Ṽ_0 x̃_0``.  The forward pass runs the closed loop ``x̃_{t+1} = (F̃_x̃ + F̃_u K̃_t) x̃_t`` with the
+closed-loop matrices formed for all steps at once.
+
+Also here: the explicit augmented-state construction of seed Eq. 76-77 (:func:`augmented_lqt`) and the
+least-squares recursive form Eq. 79-81 (:func:`ls_recursive_gains`), which accepts a full (non block
+diagonal) trajectory precision matrix and control primitives ``u = Ψ w``.
+
+Entry point: :func:`solve` (an :class:`~controllers.problem.LQProblem` in, an
+:class:`~controllers.problem.LQSolution` out), with ``grad="implicit"`` (default, the backward pass of
+:mod:`controllers.implicit`) or ``grad="unrolled"`` (autograd through the recursion).
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass
+
+import torch
+
+from controllers.problem import (
+    LinearDynamics,
+    LQProblem,
+    LQSolution,
+    QuadraticCost,
+    Reason,
+    SolverStatus,
+)
+
+__all__ = [
+    "GradMode",
+    "solve",
+    "lqr",
+    "augmented_lqt",
+    "ls_recursive_gains",
+    "RiccatiFactors",
+    "assemble",
+    "backward_pass",
+    "closed_loop",
+]
+
+
+class GradMode(str, enum.Enum):
+    """How gradients flow through :func:`solve`."""
+
+    IMPLICIT = "implicit"  #: one extra backward Riccati pass on the KKT conditions (O(T) memory)
+    UNROLLED = "unrolled"  #: autograd through every step of the recursion
+    NONE = "none"  #: no graph at all (inference)
+
+
+# --------------------------------------------------------------------------------------------------
+# assembly of the augmented matrices
+# --------------------------------------------------------------------------------------------------
+
+
+def _flat(x: torch.Tensor | None, bs: torch.Size, k: int) -> torch.Tensor | None:
+    """Timed tensor ``(*b, Tx, *trail)`` (``k`` trailing dims) -> ``(Bt or 1, Tx, *trail)``."""
+    if x is None:
+        return None
+    d = x.dim() - k - 1
+    b = x.shape[:d]
+    if b.numel() == 1:
+        return x.reshape(1, *x.shape[d:])
+    return x.expand(*bs, *x.shape[d:]).reshape(-1, *x.shape[d:])
+
+
+def _tsel(x: torch.Tensor, lo: int, hi: int) -> torch.Tensor:
+    """Time slice ``[lo:hi]`` of ``(b, Tx, ...)`` (a time dim of 1 broadcasts)."""
+    return x if x.shape[1] == 1 else x[:, lo:hi]
+
+
+def _expand_bt(x: torch.Tensor, b: int, T: int) -> torch.Tensor:
+    return x.expand(b, T, *x.shape[2:])
+
+
+def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
+    """Augmented dynamics ``F̃ (bF, TF, n+1, m+n+1)``, stage costs ``C̃ (bC, TC, k, k)`` and the terminal
+    value ``Ṽ_T (bV, n+1, n+1)`` from canonical tensors (problem-module shapes, explicit time dims).
+
+    Leading dims are 1 when a quantity is shared by the batch, time dims are 1 when time-invariant.
+    ``C̃`` is symmetrized, so the solution depends on the symmetric parts of Q, R only.
+    """
+    n, m = A.shape[-1], B.shape[-1]
+    A, B, c = _flat(A, bs, 2), _flat(B, bs, 2), _flat(c, bs, 1)
+    bF = max(A.shape[0], B.shape[0], 1 if c is None else c.shape[0])
+    TF = max(A.shape[1], B.shape[1], 1 if c is None else c.shape[1])
+    dt, dev = A.dtype, A.device
+    top = [_expand_bt(B, bF, TF), _expand_bt(A, bF, TF)]
+    top.append(torch.zeros(bF, TF, n, 1, dtype=dt, device=dev) if c is None
+               else _expand_bt(c, bF, TF).unsqueeze(-1))
+    bottom = torch.zeros(bF, TF, 1, m + n + 1, dtype=dt, device=dev)
+    bottom[..., 0, -1] = 1.0
+    F = torch.cat([torch.cat(top, -1), bottom], -2)
+
+    Q, R, N, q, r = _flat(Q, bs, 2), _flat(R, bs, 2), _flat(N, bs, 2), _flat(q, bs, 1), _flat(r, bs, 1)
+    Qs = _tsel(Q, 0, T)
+    qs = None if q is None else _tsel(q, 0, T)
+    parts = [Qs, R] + [v for v in (N, qs, r) if v is not None]
+    bC = max(v.shape[0] for v in parts)
+    TC = max(v.shape[1] for v in parts)
+    z = lambda *s: torch.zeros(bC, TC, *s, dtype=dt, device=dev)
+    Rr, Qq = _expand_bt(R, bC, TC), _expand_bt(Qs, bC, TC)
+    Nn = z(n, m) if N is None else _expand_bt(N, bC, TC)
+    qq = z(n) if qs is None else _expand_bt(qs, bC, TC)
+    rr = z(m) if r is None else _expand_bt(r, bC, TC)
+    C = torch.cat([
+        torch.cat([Rr, Nn.mT, rr.unsqueeze(-1)], -1),
+        torch.cat([Nn, Qq, qq.unsqueeze(-1)], -1),
+        torch.cat([rr.unsqueeze(-2), qq.unsqueeze(-2), z(1, 1)], -1),
+    ], -2)
+    C = 0.5 * (C + C.mT)
+
+    QT = Q[:, -1]
+    qT = None if q is None else q[:, -1]
+    bV = max(QT.shape[0], 1 if qT is None else qT.shape[0])
+    VT = torch.zeros(bV, n + 1, n + 1, dtype=dt, device=dev)
+    VT[:, :n, :n] = 0.5 * (QT + QT.mT)
+    if qT is not None:
+        VT[:, :n, n] = qT
+        VT[:, n, :n] = qT
+    return F, C, VT
+
+
+# --------------------------------------------------------------------------------------------------
+# backward and forward passes
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class RiccatiFactors:
+    """What the backward pass leaves behind (all ``(Bt, T, ...)``): gains ``Kt = [K, k] (m, n+1)``,
+    ``Huu (m, m)``, value matrices ``V (Bt, T+1, n+1, n+1)`` and ``ok (Bt, T)`` (False where ``H_uu``
+    is not positive definite)."""
+
+    Kt: torch.Tensor
+    Huu: torch.Tensor
+    V: torch.Tensor
+    ok: torch.Tensor
+
+
+def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt: int, m: int
+                  ) -> RiccatiFactors:
+    """Riccati recursion on the augmented state (module docstring); batch ``Bt``, horizon ``T``.
+
+    No autograd graph (use :func:`_backward_graph` for that).  ``H_uu⁻¹ H_ux̃`` and the Schur complement
+    ``Ṽ_t`` come from ``m`` Gauss-Jordan pivots on ``H`` done as batched elementwise updates: for tiny
+    ``m`` this is several times cheaper than per-matrix LAPACK calls, and the pivots of a symmetric
+    positive-definite ``H_uu`` are positive, so no pivoting is needed; a non-positive pivot marks the
+    element as failed (``ok``).
+    """
+    n1 = VT.shape[-1]
+    k = C.shape[-1]
+    dt, dev = VT.dtype, VT.device
+    shared_F = F.shape[0] == 1
+    tvF, tvC = F.shape[1] > 1, C.shape[1] > 1
+    Ks = torch.empty(Bt, T, m, n1, dtype=dt, device=dev)
+    Huus = torch.empty(Bt, T, m, m, dtype=dt, device=dev)
+    Vs = torch.empty(Bt, T + 1, n1, n1, dtype=dt, device=dev)
+    E = torch.eye(k, dtype=dt, device=dev)[:m].unsqueeze(-1)  # unit columns e_i (k, 1)
+    V = VT.expand(Bt, n1, n1)
+    Vs[:, T] = V
+    F0 = F[0, 0] if shared_F else F[:, 0]
+    C0 = C[:, 0]
+    if C.shape[0] != Bt:
+        C = C.expand(Bt, *C.shape[1:])
+        C0 = C0.expand(Bt, k, k)
+    pivs = []
+    for t in range(T - 1, -1, -1):
+        Ft = (F[0, t] if shared_F else F[:, t]) if tvF else F0
+        Ct = C[:, t] if tvC else C0
+        G = torch.matmul(V, Ft)  # (Bt, n+1, k)
+        if shared_F:
+            H = torch.matmul(Ft.mT, G).add_(Ct)
+        else:
+            H = torch.baddbmm(Ct, Ft.mT, G)
+        Huus[:, t] = H[:, :m, :m]
+        for i in range(m):
+            inv = 1.0 / H[:, i:i + 1, i:i + 1]
+            pivs.append(inv)
+            r = H[:, i:i + 1, :] * inv
+            H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
+        V = H[:, m:, m:]
+        Ks[:, t] = H[:, :m, m:]
+        Vs[:, t] = V
+    piv = torch.stack(pivs, 1).reshape(Bt, T, m).flip(1)
+    ok = (piv > 0).all(-1) & torch.isfinite(piv).all(-1)
+    return RiccatiFactors(Kt=Ks.neg_(), Huu=Huus, V=Vs, ok=ok)
+
+
+def closed_loop(F: torch.Tensor, Kt: torch.Tensor, m: int) -> torch.Tensor:
+    """``Φ̃_t = F̃_x̃ + F̃_u K̃_t`` for all steps at once: ``(Bt, T, n+1, n+1)``."""
+    return torch.matmul(F[..., :, :m], Kt) + F[..., :, m:]
+
+
+def _forward(Phi: torch.Tensor, x0t: torch.Tensor, T: int) -> torch.Tensor:
+    """Homogeneous states ``(Bt, T+1, n+1)`` of ``x̃_{t+1} = Φ̃_t x̃_t``."""
+    Bt, n1 = Phi.shape[0], Phi.shape[-1]
+    xs = torch.empty(Bt, T + 1, n1, 1, dtype=Phi.dtype, device=Phi.device)
+    x = x0t.unsqueeze(-1)
+    xs[:, 0] = x
+    for t in range(T):
+        x = torch.bmm(Phi[:, t], x)
+        xs[:, t + 1] = x
+    return xs.squeeze(-1)
+
+
+def _forward_graph(Phi: torch.Tensor, x0t: torch.Tensor, T: int) -> torch.Tensor:
+    """Same as :func:`_forward` without in-place writes (for autograd through the recursion)."""
+    x = x0t.unsqueeze(-1)
+    xs = [x]
+    for t in range(T):
+        x = torch.matmul(Phi[:, t], x)
+        xs.append(x)
+    return torch.stack(xs, 1).squeeze(-1)
+
+
+def _backward_graph(F, C, VT, T: int, Bt: int, m: int) -> RiccatiFactors:
+    """:func:`backward_pass` without in-place writes (autograd-friendly, for ``grad='unrolled'``)."""
+    n1 = VT.shape[-1]
+    V = VT.expand(Bt, n1, n1)
+    Ks, Hs, Vs, infos = [], [], [V], []
+    for t in range(T - 1, -1, -1):
+        Ft = F[:, t] if F.shape[1] > 1 else F[:, 0]
+        Ct = C[:, t] if C.shape[1] > 1 else C[:, 0]
+        H = torch.matmul(Ft.mT, torch.matmul(V, Ft)) + Ct
+        L, info = torch.linalg.cholesky_ex(H[:, :m, :m])
+        S = torch.cholesky_solve(H[:, :m, m:], L)
+        V = H[:, m:, m:] - torch.matmul(H[:, m:, :m], S)
+        V = 0.5 * (V + V.mT)
+        Ks.append(-S)
+        Hs.append(H[:, :m, :m])
+        Vs.append(V)
+        infos.append(info)
+    Ks.reverse()
+    Hs.reverse()
+    Vs.reverse()
+    infos.reverse()
+    return RiccatiFactors(Kt=torch.stack(Ks, 1), Huu=torch.stack(Hs, 1), V=torch.stack(Vs, 1),
+                          ok=torch.stack(infos, 1) == 0)
+
+
+def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool = False):
+    """Solve the canonical LQ problem; returns ``(x, u, J, factors, F)`` flattened to ``(Bt, ...)``.
+
+    ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.
+    """
+    n, m = A.shape[-1], B.shape[-1]
+    Bt = max(bs.numel(), 1)
+    F, C, VT = assemble(A, B, c, Q, R, N, q, r, T, bs)
+    fac = (_backward_graph if graph else backward_pass)(F, C, VT, T, Bt, m)
+    Phi = closed_loop(F, fac.Kt, m)
+    x0f = x0.expand(*bs, n).reshape(Bt, n)
+    x0t = torch.cat([x0f, torch.ones(Bt, 1, dtype=x0.dtype, device=x0.device)], -1)
+    xt = (_forward_graph if graph else _forward)(Phi, x0t, T)
+    u = torch.matmul(fac.Kt, xt[:, :T].unsqueeze(-1)).squeeze(-1)
+    J = (x0t.unsqueeze(-2) @ fac.V[:, 0] @ x0t.unsqueeze(-1)).reshape(Bt)
+    return xt[..., :n], u, J, fac, F
+
+
+# --------------------------------------------------------------------------------------------------
+# public API
+# --------------------------------------------------------------------------------------------------
+
+
+def lqr(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, Q: torch.Tensor, R: torch.Tensor,
+        N: torch.Tensor | None, q: torch.Tensor | None, r: torch.Tensor | None, x0: torch.Tensor,
+        T: int, grad: GradMode | str = GradMode.IMPLICIT):
+    """Functional core on canonical tensors (no validation): returns ``x (*B, T+1, n)``,
+    ``u (*B, T, m)``, ``K (*B, T, m, n)``, ``k (*B, T, m)``, ``J (*B,)`` and ``ok (*B, T)`` (False
+    where ``H_uu`` was not positive definite).
+
+    Shapes as in :mod:`controllers.problem` with explicit time dims; the cost is
+    ``Σ xᵀQx + uᵀRu + 2xᵀNu + 2qᵀx + 2rᵀu`` (no constant).  With ``grad='implicit'`` the gradients of
+    ``x``, ``u`` and ``J`` come from :class:`controllers.implicit.LQRFunction`; ``K``, ``k`` are then
+    returned without a graph (use ``grad='unrolled'`` to differentiate the gains).
+    """
+    grad = GradMode(grad)
+    n, m = A.shape[-1], B.shape[-1]
+    tr = [(A, 3), (B, 3), (c, 2), (Q, 3), (R, 3), (N, 3), (q, 2), (r, 2)]
+    bs = torch.broadcast_shapes(x0.shape[:-1], *[v.shape[:v.dim() - k] for v, k in tr if v is not None])
+    if grad is GradMode.IMPLICIT:
+        from controllers.implicit import lqr_implicit
+
+        x, u, J, K, k, info = lqr_implicit(A, B, c, Q, R, N, q, r, x0, T, bs)
+    else:
+        ctx = torch.enable_grad() if grad is GradMode.UNROLLED else torch.no_grad()
+        with ctx:
+            x, u, J, fac, _ = _solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, graph=grad is GradMode.UNROLLED)
+        K, k, info = fac.Kt[..., :n], fac.Kt[..., n], fac.ok
+    return (x.reshape(*bs, T + 1, n), u.reshape(*bs, T, m), K.reshape(*bs, T, m, n), k.reshape(*bs, T, m),
+            J.reshape(bs), info.reshape(*bs, T))
+
+
+def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: bool = True) -> LQSolution:
+    """Solve a batched LQR/LQT problem with the Riccati recursion.
+
+    Args:
+        problem: the :class:`LQProblem`.
+        grad: :class:`GradMode` — ``"implicit"`` (default), ``"unrolled"`` or ``"none"``.
+        check: compute the per-element input status (non-finite data, Q/R definiteness when batched).
+
+    Returns:
+        :class:`LQSolution` with ``x``, ``u``, gains ``K``/``k`` (``u_t = K_t x_t + k_t``), the optimal
+        cost (references included) and per-element status: ``SINGULAR_QUU`` where the Cholesky
+        factorization of ``H_uu`` failed, input failures from :meth:`LQProblem.input_status`.  A failed
+        element never changes the others (every operation is per element).
+    """
+    if not isinstance(problem, LQProblem):
+        raise TypeError(f"solve: argument 'problem' must be an LQProblem, got {type(problem).__name__}")
+    T = problem.T
+    d, cost = problem.dynamics, problem.cost
+    cc = cost.canonical(T)
+    x, u, K, k, J, info = lqr(d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0, T, grad)
+    J = J + cc.const
+    reason = (~info.all(-1)).to(torch.int64) * int(Reason.SINGULAR_QUU)
+    if check:
+        inp = problem.input_status().expand(reason.shape)
+        reason = torch.where(inp != 0, inp, reason)
+    return LQSolution(x=x, u=u, K=K, k=k, cost=J, status=SolverStatus.from_reason(reason, 1))
+
+
+# --------------------------------------------------------------------------------------------------
+# seed formulations kept for comparison: explicit augmented state (Eq. 76-78), LS recursive (Eq. 79-81)
+# --------------------------------------------------------------------------------------------------
+
+
+def augmented_lqt(problem: LQProblem) -> tuple[LinearDynamics, QuadraticCost, torch.Tensor]:
+    """Recast an LQT problem as an LQR problem on ``x̃ = [x; 1]`` (seed Eq. 76-77).
+
+    Returns dynamics ``Ã = [[A, c], [0, 1]]``, ``B̃ = [B; 0]``, a regulation cost with
+    ``Q̃_t = [[Q, -Qμ + q], [·, μᵀQμ - 2qᵀμ]]`` (references and linear terms folded in; ``u_ref`` and ``r``
+    folded into a cross term) and ``x̃_0``.  Solving it with zero references gives the LQT solution;
+    ``K̃_t = [K_t, k_t]`` as in Eq. 78.
+    """
+    T = problem.T
+    d = problem.dynamics.expand_time(T)
+    n, m = problem.n, problem.m
+    cc = problem.cost.canonical(T)
+    bs = problem.batch_shape
+    dt, dev = problem.dtype, problem.device
+    At = torch.zeros(*d.A.shape[:-2], n + 1, n + 1, dtype=dt, device=dev)
+    At[..., :n, :n] = d.A
+    At[..., n, n] = 1.0
+    if d.c is not None:
+        At = At.expand(*torch.broadcast_shapes(At.shape[:-2], d.c.shape[:-1]), n + 1, n + 1).clone()
+        At[..., :n, n] = d.c
+    Bt = torch.cat([d.B, torch.zeros(*d.B.shape[:-2], 1, m, dtype=dt, device=dev)], -2)
+    Q = cc.Q.expand(*cc.Q.shape[:-3], T + 1, n, n)
+    q = cc.q
+    qbs = torch.broadcast_shapes(Q.shape[:-3], cc.const.shape, *([] if q is None else [q.shape[:-2]]))
+    Qt = torch.zeros(*qbs, T + 1, n + 1, n + 1, dtype=dt, device=dev)
+    Qt[..., :n, :n] = Q
+    if q is not None:
+        Qt[..., :n, n] = q
+        Qt[..., n, :n] = q
+    # the constant of the canonical cost (the μᵀQμ terms of seed Eq. 77, summed) sits in Q̃_0[n, n]
+    Qt[..., 0, n, n] = cc.const
+    R = cc.R
+    Nt = None
+    if cc.N is not None or cc.r is not None:
+        nb = [v.shape[:-2] for v in (cc.r,) if v is not None]
+        nb += [v.shape[:-3] for v in (cc.N,) if v is not None]
+        Nt = torch.zeros(*torch.broadcast_shapes(*nb), T, n + 1, m, dtype=dt, device=dev)
+        if cc.N is not None:
+            Nt[..., :n, :] = cc.N
+        if cc.r is not None:
+            Nt[..., n, :] = cc.r
+    x0t = torch.cat([problem.x0.expand(*bs, n), torch.ones(*bs, 1, dtype=dt, device=dev)], -1)
+    return LinearDynamics(At, Bt), QuadraticCost(Qt, R, N=Nt, check=False), x0t
+
+
+def ls_recursive_gains(Sx: torch.Tensor, Su: torch.Tensor, Qbig: torch.Tensor, Rbig: torch.Tensor,
+                       A: torch.Tensor, B: torch.Tensor, Psi: torch.Tensor | None = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Least-squares formulation of recursive LQR (seed §7.6, Eq. 79-81), batched.
+
+    Computes ``F = (Ψᵀ S_uᵀ Q S_u Ψ + Ψᵀ R Ψ)⁻¹ Ψᵀ S_uᵀ Q S_x`` (Eq. 80, with control primitives §7.7;
+    ``Ψ = I`` when omitted) and rebuilds the time-varying feedback gains by ``P_1 = I``,
+    ``K_1 = F_1``, ``P_t = P_{t-1} (A_{t-1} - B_{t-1} K_{t-1})⁻¹``, ``K_t = F_t P_t`` (Eq. 81).
+
+    Args:
+        Sx: ``(*B, (T+1) n, n)``, Su: ``(*B, (T+1) n, T m)`` transfer matrices (:mod:`controllers.lifted`).
+        Qbig: full trajectory precision ``(*B, (T+1) n, (T+1) n)`` (may couple time steps), Rbig
+            ``(*B, T m, T m)``.
+        A, B: ``(*B, T, n, n)``, ``(*B, T, n, m)`` (needed for Eq. 81; ``A - B K`` must be invertible).
+        Psi: optional control primitives ``(*B, T m, K)``.
+
+    Returns:
+        ``(K, F)``: gains ``K (*B, T, m, n)`` in this package's sign convention (``u_t = K_t x_t``; the
+        seed's ``u = -K x``) and the open-loop map ``F (*B, T m, n)`` (``u = -F x_0``).
+    """
+    T = A.shape[-3]
+    n, m = A.shape[-1], B.shape[-1]
+    SuP = Su if Psi is None else Su @ Psi
+    Ru = Rbig if Psi is None else Psi.mT @ Rbig @ Psi
+    Hm = SuP.mT @ Qbig @ SuP + Ru
+    Lh = torch.linalg.cholesky(0.5 * (Hm + Hm.mT))
+    W = torch.cholesky_solve(SuP.mT @ Qbig @ Sx, Lh)
+    Fm = W if Psi is None else Psi @ W  # (*B, T m, n)
+    Ft = Fm.reshape(*Fm.shape[:-2], T, m, n)
+    bs = torch.broadcast_shapes(Ft.shape[:-3], A.shape[:-3], B.shape[:-3])
+    P = torch.eye(n, dtype=A.dtype, device=A.device).expand(*bs, n, n)
+    Ks = []
+    for t in range(T):
+        if t > 0:
+            Acl = A[..., t - 1, :, :] - B[..., t - 1, :, :] @ Ks[-1]
+            # P_t = P_{t-1} Acl⁻¹  ⇔  Aclᵀ P_tᵀ = P_{t-1}ᵀ
+            P = torch.linalg.solve(Acl.mT, P.mT).mT
+        Ks.append(Ft[..., t, :, :] @ P)
+    K = -torch.stack(Ks, -3)
+    return K, Fm

@@ -1,0 +1,203 @@
+"""Recursive Riccati LQR/LQT against the lifted least-squares oracle, a dense KKT solve and the seed's
+augmented-state and least-squares-recursive formulations."""
+
+import dataclasses
+
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from lq_oracle import D, dense_kkt, random_problem, spd
+
+from controllers import lifted, riccati
+from controllers.problem import LinearDynamics, LQProblem, QuadraticCost, Reason, rollout
+
+FIELDS = ("Q", "R", "x_ref", "u_ref", "N", "q", "r")
+
+
+@pytest.mark.parametrize("features", [dict(), dict(drift=False, cross=False, refs=False, linear=False),
+                                      dict(tv=False), dict(b=(2, 3), T=3)])
+@pytest.mark.parametrize("grad", ["implicit", "unrolled", "none"])
+def test_riccati_matches_lifted_and_kkt(features, grad):
+    g = torch.Generator().manual_seed(0)
+    p = random_problem(g, **features)
+    sol = riccati.solve(p, grad=grad)
+    ref = lifted.solve_lifted(p)
+    torch.testing.assert_close(sol.u, ref.u, atol=1e-9, rtol=0)
+    torch.testing.assert_close(sol.x, ref.x, atol=1e-9, rtol=0)
+    torch.testing.assert_close(sol.cost, ref.cost, atol=1e-9, rtol=1e-12)
+    x, u = dense_kkt(p)
+    torch.testing.assert_close(sol.u, u, atol=1e-9, rtol=0)
+    assert sol.status.all_converged
+    # the policy reproduces the trajectory: u_t = K_t x_t + k_t and x = rollout(u)
+    torch.testing.assert_close((sol.K @ sol.x[..., :-1, :, None]).squeeze(-1) + sol.k, sol.u)
+    torch.testing.assert_close(rollout(p.dynamics, p.x0, sol.u), sol.x)
+
+
+@settings(max_examples=15, deadline=None)
+@given(seed=st.integers(0, 10_000), T=st.integers(1, 7), n=st.integers(1, 4), m=st.integers(1, 3))
+def test_riccati_lifted_agree_random_sizes(seed, T, n, m):
+    g = torch.Generator().manual_seed(seed)
+    p = random_problem(g, b=(2,), T=T, n=n, m=m)
+    torch.testing.assert_close(riccati.solve(p).u, lifted.solve_lifted(p).u, atol=1e-9, rtol=0)
+
+
+def test_feedback_gains_are_optimal_from_any_state():
+    """The gains are the closed-loop optimum: re-solving from a perturbed x_t gives u_t = K_t x_t + k_t."""
+    g = torch.Generator().manual_seed(1)
+    p = random_problem(g, b=(2,), T=6)
+    sol = riccati.solve(p)
+    t = 3
+    xt = sol.x[:, t] + torch.randn(2, p.n, dtype=D, generator=g)
+    cut = lambda v, k, lo: None if v is None else v[(Ellipsis, slice(lo, None)) + (slice(None),) * k]
+    d = p.dynamics
+    c = p.cost
+    sub = LQProblem(LinearDynamics(cut(d.A, 2, t), cut(d.B, 2, t), cut(d.c, 1, t)),
+                    QuadraticCost(cut(c.Q, 2, t), cut(c.R, 2, t), x_ref=cut(c.x_ref, 1, t),
+                                  u_ref=cut(c.u_ref, 1, t), N=cut(c.N, 2, t), q=cut(c.q, 1, t),
+                                  r=cut(c.r, 1, t)), xt)
+    ref = lifted.solve_lifted(sub)
+    torch.testing.assert_close((sol.K[:, t] @ xt.unsqueeze(-1)).squeeze(-1) + sol.k[:, t], ref.u[:, 0],
+                               atol=1e-9, rtol=0)
+
+
+def test_augmented_state_lqt_eq76_78():
+    g = torch.Generator().manual_seed(2)
+    p = random_problem(g, b=(3,), T=5)
+    dyn, cost, x0t = riccati.augmented_lqt(p)
+    assert dyn.A.shape[-1] == p.n + 1 and cost.x_ref is None
+    aug = lifted.solve_lifted(LQProblem(dyn, cost, x0t))  # solved as plain regulation, by the oracle
+    sol = riccati.solve(p)
+    torch.testing.assert_close(aug.u, sol.u, atol=1e-9, rtol=0)
+    torch.testing.assert_close(aug.x[..., :-1], sol.x, atol=1e-9, rtol=0)
+    torch.testing.assert_close(aug.cost, sol.cost, atol=1e-9, rtol=1e-12)
+    # K̃ = [K, k] (Eq. 78) from the Riccati pass on the augmented problem
+    saug = riccati.solve(LQProblem(dyn, cost, x0t))
+    torch.testing.assert_close(saug.K[..., :-1], sol.K, atol=1e-9, rtol=0)
+    torch.testing.assert_close(saug.K[..., -1], sol.k, atol=1e-9, rtol=0)
+    # the seed's feedforward form: u = K (x - μ) + u_ff with u_ff = k + K μ  (Eq. 78, signs of this package)
+    mu = p.cost.x_ref[:, :-1]
+    uff = sol.k + (sol.K @ mu.unsqueeze(-1)).squeeze(-1)
+    torch.testing.assert_close((sol.K @ (sol.x[:, :-1] - mu).unsqueeze(-1)).squeeze(-1) + uff, sol.u)
+
+
+def _lifted_mats(p):
+    T = p.T
+    Sx, Su, _ = lifted.transfer_matrices(p.dynamics.A, p.dynamics.B, None, T)
+    cc = p.cost.canonical(T)
+    return Sx, Su, lifted.block_diag_time(cc.Q, T + 1), lifted.block_diag_time(cc.R, T)
+
+
+def test_ls_recursive_gains_equal_riccati_eq79_81():
+    g = torch.Generator().manual_seed(3)
+    # LQR, and LQT through the augmented state (no u_ref / cross terms: Eq. 80 has none)
+    for kw in (dict(drift=False, cross=False, refs=False, linear=False), dict(cross=False, linear=False)):
+        p = random_problem(g, b=(2,), T=5, **kw)
+        if p.cost.u_ref is not None:
+            p = dataclasses.replace(p, cost=dataclasses.replace(p.cost, u_ref=None))
+        dyn, cost, x0t = riccati.augmented_lqt(p)
+        pa = LQProblem(dyn.expand_time(5), cost, x0t)
+        Sx, Su, Qb, Rb = _lifted_mats(pa)
+        K, Fm = riccati.ls_recursive_gains(Sx, Su, Qb, Rb, pa.dynamics.A, pa.dynamics.B)
+        sol = riccati.solve(p)
+        torch.testing.assert_close(K[..., :-1], sol.K, atol=1e-8, rtol=0)
+        torch.testing.assert_close(K[..., -1], sol.k, atol=1e-8, rtol=0)
+        torch.testing.assert_close(-(Fm @ x0t.unsqueeze(-1)).squeeze(-1).reshape(2, 5, p.m), sol.u)
+
+
+def test_ls_recursive_full_precision_and_primitives_reproduce_open_loop():
+    """With a full precision (cross-time) or control primitives, the Eq. 81 gains reproduce the lifted
+    open-loop optimum in closed loop (what the seed's multi-agent and DMP examples rely on)."""
+    g = torch.Generator().manual_seed(4)
+    T, n, m = 8, 2, 2
+    A = torch.eye(n, dtype=D) + 0.1 * torch.randn(n, n, dtype=D, generator=g)
+    B = 0.5 * torch.eye(n, dtype=D)
+    Q = spd(T + 1, k=n, g=g)
+    p = LQProblem(LinearDynamics(A, B), QuadraticCost(Q, 0.1 * torch.eye(m, dtype=D),
+                                                      x_ref=torch.randn(T + 1, n, dtype=D, generator=g)),
+                  torch.randn(n, dtype=D, generator=g))
+    dyn, cost, x0t = riccati.augmented_lqt(p)
+    pa = LQProblem(dyn.expand_time(T), cost, x0t)
+    Sx, Su, Qb, Rb = _lifted_mats(pa)
+    # couple x_2 and x_6 in the (augmented) precision
+    Jm = torch.zeros(n, (T + 1) * (n + 1), dtype=D)
+    Jm[:, 2 * (n + 1):2 * (n + 1) + n] = torch.eye(n, dtype=D)
+    Jm[:, 6 * (n + 1):6 * (n + 1) + n] = -torch.eye(n, dtype=D)
+    Qfull = Qb + 5.0 * Jm.T @ Jm
+    from controllers import basis
+
+    for Qm, Psi in ((Qfull, None), (Qb, lifted.control_primitives(basis.rbf(T, 3, dtype=D), m))):
+        K, Fm = riccati.ls_recursive_gains(Sx, Su, Qm, Rb, pa.dynamics.A, pa.dynamics.B, Psi=Psi)
+        u_open = -(Fm @ x0t).reshape(T, m)
+        x = x0t
+        for t in range(T):
+            u = K[t] @ x
+            torch.testing.assert_close(u, u_open[t], atol=1e-9, rtol=0)
+            x = pa.dynamics.step(x, u, t)
+        # and u_open is the lifted optimum for that precision / subspace
+        if Psi is None:
+            ref = lifted.solve_lifted(pa, Qbig=Qm)
+            torch.testing.assert_close(ref.u, u_open, atol=1e-9, rtol=0)
+
+
+def test_batched_equals_loop_and_broadcasting():
+    g = torch.Generator().manual_seed(5)
+    p = random_problem(g, b=(3,), T=4)
+    sol = riccati.solve(p)
+    for i in range(3):
+        d, c = p.dynamics, p.cost
+        pi = LQProblem(LinearDynamics(d.A[i], d.B[i], d.c[i]),
+                       QuadraticCost(*(getattr(c, k)[i] for k in FIELDS)),
+                       p.x0[i])
+        si = riccati.solve(pi)
+        torch.testing.assert_close(si.u, sol.u[i])
+        torch.testing.assert_close(si.K, sol.K[i])
+    # shared (un-batched) dynamics and cost == manually expanded
+    A, B = p.dynamics.A[0, :1], p.dynamics.B[0, :1]
+    Q, R = p.cost.Q[0, :1], p.cost.R[0, :1]
+    x0 = torch.randn(5, p.n, dtype=D, generator=g)
+    shared = riccati.solve(LQProblem(LinearDynamics(A[0], B[0]), QuadraticCost(Q[0], R[0]), x0, horizon=4))
+    expanded = riccati.solve(LQProblem(LinearDynamics(A.expand(5, 4, -1, -1), B.expand(5, 4, -1, -1)),
+                                       QuadraticCost(Q.expand(5, 5, -1, -1), R.expand(5, 4, -1, -1)), x0))
+    torch.testing.assert_close(shared.u, expanded.u)
+    torch.testing.assert_close(shared.K, expanded.K)
+
+
+def test_float32_close_to_float64():
+    g = torch.Generator().manual_seed(6)
+    p64 = random_problem(g, b=(16,), T=50, n=8, m=4, tv=False)
+    sol64 = riccati.solve(p64)
+    cast = lambda v: None if v is None else v.float()
+    d, c = p64.dynamics, p64.cost
+    p32 = LQProblem(LinearDynamics(cast(d.A), cast(d.B), cast(d.c)),
+                    QuadraticCost(*(cast(getattr(c, k)) for k in FIELDS)),
+                    p64.x0.float())
+    sol32 = riccati.solve(p32)
+    assert sol32.u.dtype == torch.float32
+    err = (sol32.u.double() - sol64.u).abs().max() / sol64.u.abs().max()
+    assert err < 1e-3
+
+
+def test_per_element_failures_do_not_poison_the_batch():
+    g = torch.Generator().manual_seed(7)
+    p = random_problem(g, b=(4,), T=5, cross=False)
+    x0 = p.x0.clone()
+    x0[1, 0] = float("nan")
+    R = p.cost.R.clone()
+    R[2] = -R[2]  # element 2: R negative definite -> H_uu not PD
+    bad = LQProblem(p.dynamics, dataclasses.replace(p.cost, R=R), x0)
+    sol = riccati.solve(bad)
+    good = riccati.solve(p)
+    assert sol.status.reason_names() == ["CONVERGED", "NONFINITE_INPUT", "NOT_POSITIVE_DEFINITE", "CONVERGED"]
+    for i in (0, 3):
+        torch.testing.assert_close(sol.u[i], good.u[i])
+    assert torch.isnan(sol.x[1]).any()
+    # without the input check the solver itself detects the indefinite H_uu
+    sol2 = riccati.solve(bad, check=False)
+    assert int(sol2.status.reason[2]) == Reason.SINGULAR_QUU
+    assert sol2.status.converged[[0, 3]].all()
+
+
+def test_solve_rejects_non_problem():
+    with pytest.raises(TypeError, match="LQProblem"):
+        riccati.solve("not a problem")
