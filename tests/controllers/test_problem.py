@@ -156,3 +156,68 @@ def test_via_points():
     torch.testing.assert_close(c.x_ref[:, [3, 7, 10]], targets)
     with pytest.raises(ValueError, match="times"):
         QuadraticCost.via_points(5, [3, 7, 10], targets, torch.eye(2, dtype=D), torch.eye(2, dtype=D))
+
+
+# ---- linearize (controllers.linearize) --------------------------------------------------------------
+
+
+def _pendulum():
+    dt = 0.05
+
+    def f(x, u, t):
+        th, om = x[..., 0], x[..., 1]
+        om2 = om + dt * (-9.81 * torch.sin(th) + u[..., 0] * (1 + 0.1 * t))
+        return torch.stack([th + dt * om2, om2], -1)
+
+    def jac(x, u, t):
+        th = x[..., 0]
+        z, o = torch.zeros_like(th), torch.ones_like(th)
+        dom = torch.stack([-9.81 * dt * torch.cos(th), o], -1)  # d om2 / d(th, om)
+        A = torch.stack([torch.stack([o, z], -1) + dt * dom, dom], -2)
+        b = dt * (1 + 0.1 * t) * o
+        B = torch.stack([dt * b, b], -1).unsqueeze(-1)
+        return A, B
+
+    return f, jac
+
+
+@pytest.mark.parametrize("method", ["vmap", "batch-sum", "analytic"])
+def test_linearize_matches_analytic_and_finite_differences(method):
+    from controllers.linearize import linearize
+
+    f, jac = _pendulum()
+    dyn = NonlinearDynamics(f, 2, 1, jacobian=jac)
+    g = torch.Generator().manual_seed(6)
+    x = torch.randn(3, 5, 2, dtype=D, generator=g)
+    u = torch.randn(3, 5, 1, dtype=D, generator=g)
+    lin = linearize(dyn, x, u, method=method)
+    for t in range(5):
+        A, B = jac(x[:, t], u[:, t], t)
+        torch.testing.assert_close(lin.A[:, t], A)
+        torch.testing.assert_close(lin.B[:, t], B)
+    # the affine model is exact at the expansion point and first-order accurate around it
+    y = torch.stack([f(x[:, t], u[:, t], t) for t in range(5)], 1)
+    torch.testing.assert_close(lin.step(x[:, 2], u[:, 2], 2), y[:, 2])
+    dx = 1e-5 * torch.randn(3, 2, dtype=D, generator=g)
+    err = lin.step(x[:, 2] + dx, u[:, 2], 2) - f(x[:, 2] + dx, u[:, 2], 2)
+    assert err.abs().max() < 1e-8
+
+
+def test_linearize_linear_dynamics_is_exact_and_errors():
+    from controllers.linearize import jacobians, linearize
+
+    g = torch.Generator().manual_seed(7)
+    A = torch.randn(3, 3, dtype=D, generator=g)
+    B = torch.randn(3, 2, dtype=D, generator=g)
+    c = torch.randn(3, dtype=D, generator=g)
+    f = lambda x, u, t: x @ A.T + u @ B.T + c
+    x = torch.randn(4, 6, 3, dtype=D, generator=g)
+    u = torch.randn(4, 5, 2, dtype=D, generator=g)
+    lin = linearize(f, x, u, time_invariant=True)  # x has T+1 steps: the last one is ignored
+    torch.testing.assert_close(lin.A, A.expand(4, 5, 3, 3))
+    torch.testing.assert_close(lin.B, B.expand(4, 5, 3, 2))
+    torch.testing.assert_close(lin.c, c.expand(4, 5, 3))
+    with pytest.raises(ValueError, match="T = 5"):
+        linearize(f, x[:, :3], u)
+    with pytest.raises(ValueError, match="analytic"):
+        jacobians(f, x[:, 0], u[:, 0], method="analytic")
