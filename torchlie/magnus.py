@@ -19,9 +19,11 @@ Two predictors of ``ξ_1 … ξ_H`` from twists ``T_0 … T_{H-1}`` are provided
 * **world frame** (the paper's Eq. 16): ``ξ = log X`` and, linearized at ``ξ_0 = log X_0``,
   ``ξ_{k+1} = ξ_0 + Δt dexp⁻¹_{ξ_0} (T_0 + … + T_k)`` — linear, so it is the model ``x_{k+1} = A x_k +
   B u_k`` of Eq. 5 with ``A = I`` and ``B = Δt dexp⁻¹_{ξ_0}`` (:func:`linear_model`).  Its accuracy
-  depends on where ``X_0`` sits: ``dexp⁻¹_ξ`` grows quickly and the truncated series degrades as the
-  rotation angle of ``X_0`` approaches π (the cut locus of ``log``), which is where every tool-down
-  orientation of a robot arm (``R = diag(1, -1, -1)`` and its yaw rotations) lies.
+  depends on where ``X_0`` sits: as the rotation angle θ of ``X_0`` approaches π (the cut locus of
+  ``log``) the order-2 series departs from ``J_r⁻¹`` (the first omitted term grows like θ⁴) and
+  ``J_r⁻¹`` itself varies faster along the horizon, so the error of Eq. 16 grows several-fold; and
+  ``log`` is discontinuous there, so ``ξ`` jumps when a path crosses θ = π.  Every tool-down
+  orientation of a robot arm (``R = diag(1, -1, -1)`` and its yaw rotations) has θ = π exactly.
 * **local frame**: ``X_k = X_0 exp(Ω_k)`` with ``Ω_0 = 0``; the ME2 recursion
   ``Ω_{k+1} = Ω_k + Δt (T_k + ½[Ω_k, T_k] + 1/12 [Ω_k, [Ω_k, T_k]])``.  It never sees the angle of
   ``X_0`` and keeps ``Ω`` small over a horizon, so it has no cut-locus problem; it is bilinear in
@@ -415,7 +417,11 @@ def predict_poses(X0: torch.Tensor, twists: torch.Tensor, dt, frame: Frame | str
     World frame: ``exp(predict_world(log X_0, …))``; local frame: ``X_0 exp(predict_local(…))``.
     """
     fn = "predict_poses"
-    frame = Frame(frame)
+    try:
+        frame = Frame(frame)
+    except ValueError:
+        raise ValueError(f"{fn}: argument 'frame' must be 'world' or 'local' (a magnus.Frame), "
+                         f"got {frame!r}") from None
     G = _group_of(twists, "twists", fn)
     n = 3 if twists.shape[-1] == 3 else 4
     _group_matrix_check(X0, n, "X0", fn)

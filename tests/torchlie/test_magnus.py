@@ -333,7 +333,7 @@ def test_bad_input():
         magnus.predict_world(torch.zeros(3, 6), T, 0.1)
     with pytest.raises(TypeError, match="dtypes"):
         magnus.predict_world(xi0.double(), T, 0.1)
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="'frame'"):
         magnus.predict_poses(torch.eye(4), T, 0.1, "sideways")
     with pytest.raises(ValueError, match="'order'"):
         magnus.predict_poses(torch.eye(4), T, 0.1, "local", order=None)
