@@ -52,35 +52,57 @@ def _switch(dtype: torch.dtype) -> float:
     return 1e-2 if dtype == torch.float64 else 1e-1
 
 
+def _mask(cond: torch.Tensor, dtype: torch.dtype) -> tuple[torch.Tensor, torch.Tensor]:
+    """A boolean condition as complementary 0/1 float masks ``(m, 1 − m)``."""
+    m = cond.to(dtype)
+    return m, 1 - m
+
+
+def _blend(m: torch.Tensor, mc: torch.Tensor, a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a`` where ``m == 1`` and ``b`` where ``mc == 1``, exactly (``x·1 + y·0 = x`` for finite y).
+
+    Used instead of ``torch.where``, which is not vectorized on CPU and costs ~20 multiplications
+    per call; both branches must be finite everywhere (the safe-``where`` pattern guarantees it),
+    and then the gradient of the unselected branch is multiplied by an exact zero.
+    """
+    return torch.addcmul(a * m, b, mc)
+
+
 def _coeffs(theta2: torch.Tensor, need: str) -> dict[str, torch.Tensor]:
     """Coefficients of θ² used by exp and the Jacobians.
 
     ``a = sin θ/θ``, ``b = (1 - cos θ)/θ²``, ``c = (θ - sin θ)/θ³``, ``cos = cos θ``,
     ``d = (1/θ²)(1 - θ sin θ / (2(1 - cos θ)))`` (the ω̂² coefficient of J⁻¹).
-    Series are taken to the θ⁶ (a, b, c) or θ⁶ (d) term below :func:`_switch`; above it the closed
-    forms are evaluated.  Below the switch the closed forms see θ² = 1 (harmless), so no NaN or inf
-    reaches autograd.
+    Below :func:`_switch` the Taylor series (to the θ⁶ term) is taken, above it the closed form.
+    Branch-free and safe: the closed forms see θ² + 1 ≥ 1 where the series is used, and the series
+    see θ² clamped to the switch where the closed form is used, so both stay finite everywhere and
+    no NaN or inf reaches autograd.
     """
-    small = theta2 < _switch(theta2.dtype)
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    sw = _switch(theta2.dtype)
+    small, big = _mask(theta2 < sw, theta2.dtype)
+    t2 = theta2 + small
     th = torch.sqrt(t2)
-    s, co = torch.sin(th), torch.cos(th)
-    x = theta2
+    x = torch.clamp(theta2, max=sw)
     out: dict[str, torch.Tensor] = {}
+    if "a" in need or "d" in need or "c" in need:
+        s = torch.sin(th)
+    if "b" in need or "cos" in need or "d" in need:
+        co = torch.cos(th)
     if "a" in need:
-        out["a"] = torch.where(small, 1 - x / 6 * (1 - x / 20 * (1 - x / 42 * (1 - x / 72))), s / th)
-    if "b" in need:
-        out["b"] = torch.where(small, 0.5 - x / 24 * (1 - x / 30 * (1 - x / 56 * (1 - x / 90))),
-                               (1 - co) / t2)
-    if "c" in need:
-        out["c"] = torch.where(small, 1 / 6 - x / 120 * (1 - x / 42 * (1 - x / 72 * (1 - x / 110))),
-                               (th - s) / (t2 * th))
+        out["a"] = _blend(small, big, 1 - x / 6 * (1 - x / 20 * (1 - x / 42 * (1 - x / 72))), s / th)
+    if "b" in need or "cos" in need:
+        out["b"] = _blend(small, big, 0.5 - x / 24 * (1 - x / 30 * (1 - x / 56 * (1 - x / 90))),
+                          (1 - co) / t2)
     if "cos" in need:
-        out["cos"] = torch.where(small, 1 - x / 2 * (1 - x / 12 * (1 - x / 30 * (1 - x / 56))), co)
+        # cos θ = 1 − θ² b: exact to the dtype's absolute resolution, no branch of its own
+        out["cos"] = 1 - theta2 * out["b"]
+    if "c" in need:
+        out["c"] = _blend(small, big, 1 / 6 - x / 120 * (1 - x / 42 * (1 - x / 72 * (1 - x / 110))),
+                          (th - s) / (t2 * th))
     if "d" in need:
         # d = 1/12 + θ²/720 + θ⁴/30240 + θ⁶/1209600 + ...
-        out["d"] = torch.where(small, 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
-                               (1 - th * s / (2 * (1 - co))) / t2)
+        out["d"] = _blend(small, big, 1 / 12 + x / 720 + x * x / 30240 + x * x * x / 1209600,
+                          (1 - th * s / (2 * (1 - co))) / t2)
     return out
 
 
@@ -171,15 +193,22 @@ def _quat_from_entries(r: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
     e0 = (d0 >= d1) & (d0 >= d2) & (d0 >= d3)
     e1 = ~e0 & (d1 >= d2) & (d1 >= d3)
     e2 = ~(e0 | e1) & (d2 >= d3)
-    dsel = torch.where(e0, d0, torch.where(e1, d1, torch.where(e2, d2, d3)))
+    m0, m1, m2 = e0.to(tr.dtype), e1.to(tr.dtype), e2.to(tr.dtype)
+    m3 = 1 - m0 - m1 - m2  # one-hot: exactly one of m0..m3 is 1
+
+    def pick(v0, v1, v2, v3):  # exact selection (see _blend)
+        return torch.addcmul(torch.addcmul(torch.addcmul(v0 * m0, v1, m1), v2, m2), v3, m3)
+
+    dsel = pick(d0, d1, d2, d3)
     a21, a02, a10 = r21 - r12, r02 - r20, r10 - r01
     b10, b02, b21 = r10 + r01, r02 + r20, r21 + r12
+    # dsel ≥ 1 (the four d_i sum to 4), so the divisor never approaches zero
     h = 0.5 * torch.rsqrt(dsel)
     # numerators of (w, x, y, z) for the branches (w, x, y, z) — see the docstring
-    qw = torch.where(e0, dsel, torch.where(e1, a21, torch.where(e2, a02, a10))) * h
-    qx = torch.where(e0, a21, torch.where(e1, dsel, torch.where(e2, b10, b02))) * h
-    qy = torch.where(e0, a02, torch.where(e1, b10, torch.where(e2, dsel, b21))) * h
-    qz = torch.where(e0, a10, torch.where(e1, b02, torch.where(e2, b21, dsel))) * h
+    qw = pick(dsel, a21, a02, a10) * h
+    qx = pick(a21, dsel, b10, b02) * h
+    qy = pick(a02, b10, dsel, b21) * h
+    qz = pick(a10, b02, b21, dsel) * h
     sgn = 1 - 2 * (qw < 0).to(qw.dtype)
     return qw * sgn, qx * sgn, qy * sgn, qz * sgn
 
@@ -190,11 +219,11 @@ def _log_from_quat(qw, qx, qy, qz) -> tuple[torch.Tensor, torch.Tensor, torch.Te
     Scale-invariant, so the quaternion need not be exactly unit.
     """
     n2 = qx * qx + qy * qy + qz * qz
-    small = n2 < (1e-10 if qw.dtype == torch.float64 else 1e-6)
-    n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
-    ws = torch.where(small, qw, torch.ones_like(qw))
-    # 2 atan2(n, w)/n, and its series 2/w (1 - n²/(3 w²)) for small n (w ≈ 1 there)
-    f = torch.where(small, 2 / ws * (1 - n2 / (3 * ws * ws)), 2 * torch.atan2(n, qw) / n)
+    small, big = _mask(n2 < (1e-10 if qw.dtype == torch.float64 else 1e-6), qw.dtype)
+    n = torch.sqrt(n2 + small)
+    ws = qw * small + big
+    # 2 atan2(n, w)/n, and its series 2/w (1 − n²/(3 w²)) for small n (w ≈ 1 there)
+    f = _blend(small, big, 2 / ws * (1 - n2 / (3 * ws * ws)), 2 * torch.atan2(n, qw) / n)
     return f * qx, f * qy, f * qz
 
 
