@@ -168,7 +168,10 @@ def act(X: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     check_tensor(X, (4, 4), "X", "se3.act")
     check_tensor(p, (3,), "p", "se3.act")
     check_same_device("se3.act", X=X, p=p)
-    return torch.matmul(X[..., :3, :3], p.unsqueeze(-1)).squeeze(-1) + X[..., :3, 3]
+    # t + Σ_k R[:, k] p_k as three fused multiply-adds (several times faster than a batched matmul
+    # of 3×3 by 3×1 plus an add); the first one allocates the (broadcast) output
+    out = torch.addcmul(X[..., :3, 3], X[..., :3, 0], p[..., 0:1])
+    return out.addcmul_(X[..., :3, 1], p[..., 1:2]).addcmul_(X[..., :3, 2], p[..., 2:3])
 
 
 def adjoint(X: torch.Tensor) -> torch.Tensor:

@@ -303,7 +303,8 @@ def act(R: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
     check_tensor(R, (3, 3), "R", "so3.act")
     check_tensor(p, (3,), "p", "so3.act")
     check_same_device("so3.act", R=R, p=p)
-    return torch.matmul(R, p.unsqueeze(-1)).squeeze(-1)
+    out = R[..., :, 0] * p[..., 0:1]  # Σ_k R[:, k] p_k by fused multiply-adds (see se3.act)
+    return out.addcmul_(R[..., :, 1], p[..., 1:2]).addcmul_(R[..., :, 2], p[..., 2:3])
 
 
 def adjoint(R: torch.Tensor) -> torch.Tensor:
