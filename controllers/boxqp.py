@@ -99,6 +99,7 @@ def box_qp(
     armijo: float = 0.1,
     step_dec: float = 0.5,
     n_steps: int = 24,
+    check: bool = True,
 ) -> BoxQPResult:
     """Solve ``min ½xᵀHx + gᵀx  s.t.  lower ≤ x ≤ upper`` for a batch, by projected Newton.
 
@@ -112,6 +113,7 @@ def box_qp(
         min_rel_improve: stop when an accepted step lowers the objective by less than this fraction.
         armijo: accepted step must achieve this fraction of the linearly predicted decrease.
         step_dec, n_steps: candidate steps are ``step_dec**j`` for ``j < n_steps``, all evaluated at once.
+        check: validate ``lower <= upper`` (a host sync); solvers that already did may pass ``False``.
 
     Returns:
         :class:`BoxQPResult` with per-element status; one bad element never affects the others.
@@ -135,7 +137,7 @@ def box_qp(
     except RuntimeError as e:
         raise ValueError(f"box_qp: lower/upper must broadcast to {(*batch, m)}, got {tuple(lo.shape)} "
                          f"and {tuple(hi.shape)}") from e
-    if bool((lo > hi).any()):
+    if check and bool((lo > hi).any()):
         raise ValueError("box_qp: lower must be <= upper everywhere")
     H = H.expand(*batch, m, m)
     g = g.expand(*batch, m)

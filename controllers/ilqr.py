@@ -1,0 +1,845 @@
+"""Batched iLQR with control limits and implicit gradients (seed 004 §8, §9).
+
+Problem (conventions of :mod:`controllers.problem`: ``x_0 .. x_T``, ``u_0 .. u_{T-1}``, batch first)::
+
+    minimize_u   J(x, u) = Σ_t l_t(x_t, u_t) + l_T(x_T)
+    subject to   x_{t+1} = f(x_t, u_t, t),   x_0 given,   u_lower ≤ u_t ≤ u_upper.
+
+Two formulations of the same Gauss–Newton iteration, both with the backtracking line search of
+Algorithm 1 (all candidate step sizes rolled out at once, one accepted step size per batch element):
+
+* :attr:`ILQRMethod.RECURSIVE` — Algorithm 5 (Eq. 89–94): backward Riccati pass on the linearization
+  (Eq. 91), feedforward ``k_t`` and gains ``K_t`` (Eq. 92), value update (Eq. 93), forward pass with
+  ``u_t ← û_t + α k_t + K_t (x_t - x̂_t)`` (Eq. 101).  Control limits as in control-limited DDP (Tassa,
+  Mansard & Todorov 2014): the feedforward step solves the box QP of :mod:`controllers.boxqp` on
+  ``Q_uu``, and the rows of ``K_t`` of clamped controls are zero.
+* :attr:`ILQRMethod.BATCH` — Algorithm 4 (Eq. 87 / 108): the whole control sequence is one decision
+  variable; the Gauss–Newton step uses the transfer matrix ``S_u`` (Appendix A, ``Δx = S_u Δu``, from
+  :func:`controllers.lifted.transfer_matrices`) and,
+  with control limits, a box QP over all ``T·m`` controls.
+
+Both regularize ``Q_uu`` (resp. the Gauss–Newton matrix) Levenberg–Marquardt style, ``+ μ I`` with the
+per-element schedule of Tassa et al., stop per element on a small step (``‖Δu‖∞ ≤ tol (1 + ‖u‖∞)``,
+the Δ_min of Algorithms 4–5) or a small relative cost decrease, and record the cost history.
+
+Gradients (:class:`GradMode`).  ``IMPLICIT`` (default): the solver runs without a graph; at the returned
+point ``z* = (x*, u*)`` with costates ``λ*`` the stationarity conditions ``∇_z L(z*, λ*; θ) = 0`` and the
+dynamics ``c(z*; θ) = 0`` (clamped controls fixed on their bounds) define ``z*(θ)`` implicitly, and
+
+    dz*/dθ = -K⁻¹ [∂∇_z L/∂θ ; ∂c/∂θ],      K = [[∇²_zz L, ∇_z cᵀ], [∇_z c, 0]],
+
+which is the derivative of one Newton step on the KKT system — an LQ problem on the linearization with
+the exact Lagrangian Hessian, solved by the Riccati machinery of :mod:`controllers.riccati` (its own
+implicit backward).  Memory is O(T) and the cost is independent of the number of iLQR iterations; θ is
+anything ``x0``, the cost or the dynamics depend on (references, weights, a pendulum's length...).
+``UNROLL``: autograd through every iteration.  ``NONE``: no graph.  Elements that did not converge
+still get the implicit formula at their last iterate and are flagged in ``status`` — never detached.
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
+from controllers.problem import LinearDynamics, NonlinearDynamics, QuadraticCost, Reason, SolverStatus
+
+__all__ = [
+    "ILQRMethod",
+    "GradMode",
+    "ILQRProblem",
+    "ILQRSolution",
+    "ILQROptions",
+    "ilqr",
+]
+
+
+class ILQRMethod(str, enum.Enum):
+    """Which formulation of iLQR (seed 004 §8)."""
+
+    RECURSIVE = "recursive"  #: Algorithm 5: backward Riccati pass, gains, forward pass (Eq. 89-94)
+    BATCH = "batch"  #: Algorithm 4: Gauss-Newton over the whole control sequence (Eq. 87 / 108)
+
+
+class GradMode(str, enum.Enum):
+    """How gradients reach ``x0``, cost and dynamics parameters."""
+
+    IMPLICIT = "implicit"  #: implicit function theorem at the solution, one LQ solve (O(T) memory)
+    UNROLL = "unroll"  #: autograd through every iteration
+    NONE = "none"  #: no graph
+
+
+@dataclass(frozen=True)
+class ILQROptions:
+    """Solver settings (all per element except ``max_iter``).
+
+    Attributes:
+        max_iter: iterations at most.
+        tol: stop when ``max_t ‖k_t‖∞ ≤ tol · (1 + ‖u‖∞)`` (Δ_min of Algorithms 4-5); default by dtype.
+        tol_cost: stop when an accepted step lowers the cost by less than ``tol_cost · |J|``.
+        mu_init, mu_min, mu_max, mu_factor: Levenberg-Marquardt regularization ``Q_uu + μ I`` with the
+            schedule of Tassa et al. (μ below ``mu_min`` becomes 0; above ``mu_max`` the element fails).
+        line_search_steps: candidate step sizes ``1, ½, ¼, ...`` (Algorithm 1, α_min = 2^-(steps-1)).
+        armijo: accept a step when the decrease reaches this fraction of the predicted one.
+    """
+
+    max_iter: int = 100
+    tol: float | None = None
+    tol_cost: float | None = None
+    mu_init: float = 0.0
+    mu_min: float = 1e-6
+    mu_max: float = 1e10
+    mu_factor: float = 1.6
+    line_search_steps: int = 10
+    armijo: float = 1e-4
+
+
+# --------------------------------------------------------------------------------------------------
+# problem and solution
+# --------------------------------------------------------------------------------------------------
+
+
+def _is_system(d) -> bool:
+    """A time-invariant system model (``controllers.systems``): ``step``/``jacobian`` broadcast over time."""
+    return (not isinstance(d, (LinearDynamics, NonlinearDynamics)) and callable(getattr(d, "step", None))
+            and callable(getattr(d, "jacobian", None)) and isinstance(getattr(d, "n", None), int)
+            and isinstance(getattr(d, "m", None), int))
+
+
+@dataclass(frozen=True, eq=False)
+class ILQRProblem:
+    """A batched nonlinear optimal-control problem with box control limits.
+
+    Args:
+        dynamics: :class:`~controllers.problem.NonlinearDynamics`,
+            :class:`~controllers.problem.LinearDynamics`
+            or a time-invariant system model from :mod:`controllers.systems` (its Jacobians are then
+            evaluated for all time steps in one call).
+        cost: :class:`~controllers.problem.QuadraticCost` (analytic derivatives), or any object with
+            ``evaluate(x (*B, T+1, n), u (*B, T, m)) -> (*B,)`` that is a sum of per-step terms
+            (derivatives by autograd), optionally with ``derivatives(x, u) -> (gx, gu, Hxx, Hux, Huu)``
+            (e.g. Gauss-Newton Hessians of a residual cost, Eq. 104-105).
+        x0: ``(*B, n)`` initial states.
+        horizon: ``T``.
+        u_lower, u_upper: control limits, ``None`` (unbounded), a float, or tensors broadcastable to
+            ``(*B, T, m)`` (e.g. ``(m,)``); ``±inf`` entries are unbounded.
+    """
+
+    dynamics: object
+    cost: object
+    x0: Tensor
+    horizon: int
+    u_lower: Tensor | float | None = None
+    u_upper: Tensor | float | None = None
+
+    def __post_init__(self) -> None:
+        own = "ILQRProblem"
+        d = self.dynamics
+        if not (isinstance(d, (LinearDynamics, NonlinearDynamics)) or _is_system(d)):
+            raise TypeError(f"{own}: field 'dynamics' must be a NonlinearDynamics, a LinearDynamics or a "
+                            f"system model with n, m, step and jacobian; got {type(d).__name__}")
+        if not callable(getattr(self.cost, "evaluate", None)):
+            raise TypeError(f"{own}: field 'cost' must have evaluate(x, u), got {type(self.cost).__name__}")
+        if not isinstance(self.x0, Tensor) or not self.x0.dtype.is_floating_point:
+            raise TypeError(f"{own}: field 'x0' must be a floating tensor (*B, n)")
+        n, m = self.n, self.m
+        if self.x0.dim() < 1 or self.x0.shape[-1] != n:
+            raise ValueError(f"{own}: field 'x0' must have shape (*B, {n}), got {tuple(self.x0.shape)}")
+        T = self.horizon
+        if not isinstance(T, int) or isinstance(T, bool) or T < 1:
+            raise ValueError(f"{own}: field 'horizon' must be a positive int, got {T!r}")
+        if isinstance(self.cost, QuadraticCost):
+            if self.cost.n != n or self.cost.m != m:
+                raise ValueError(f"{own}: cost is for n={self.cost.n}, m={self.cost.m} but dynamics has "
+                                 f"n={n}, m={m}")
+            if self.cost.horizon not in (None, T):
+                raise ValueError(f"{own}: cost has horizon {self.cost.horizon} but the problem has {T}")
+            if self.cost.dtype != self.x0.dtype:
+                raise TypeError(f"{own}: cost dtype {self.cost.dtype} differs from x0 dtype {self.x0.dtype}")
+        if isinstance(d, LinearDynamics):
+            if d.horizon not in (None, T):
+                raise ValueError(f"{own}: dynamics has horizon {d.horizon} but the problem has {T}")
+            if d.dtype != self.x0.dtype:
+                raise TypeError(f"{own}: dynamics dtype {d.dtype} differs from x0 dtype {self.x0.dtype}")
+        for name in ("u_lower", "u_upper"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            if isinstance(v, Tensor):
+                if v.dtype != self.x0.dtype:
+                    raise TypeError(f"{own}: field '{name}' has dtype {v.dtype}, x0 has {self.x0.dtype}")
+                if v.dim() == 0 or v.shape[-1] not in (1, m):
+                    raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, {m}), "
+                                     f"got {tuple(v.shape)}")
+        lo, hi = self.bounds()
+        if lo is not None and bool((lo > hi).any()):
+            raise ValueError(f"{own}: u_lower must be <= u_upper everywhere")
+
+    @property
+    def n(self) -> int:
+        return self.dynamics.n
+
+    @property
+    def m(self) -> int:
+        return self.dynamics.m
+
+    @property
+    def T(self) -> int:
+        return self.horizon
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.x0.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.x0.device
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        shapes = [self.x0.shape[:-1]]
+        if isinstance(self.cost, QuadraticCost):
+            shapes.append(self.cost.batch_shape)
+        if isinstance(self.dynamics, LinearDynamics):
+            shapes.append(self.dynamics.batch_shape)
+        for v in (self.u_lower, self.u_upper):
+            if isinstance(v, Tensor) and v.dim() > 2:
+                shapes.append(v.shape[:-2])
+        return torch.broadcast_shapes(*shapes)
+
+    def bounds(self) -> tuple[Tensor | None, Tensor | None]:
+        """``(lower, upper)`` as tensors broadcastable to ``(*B, T, m)``, or ``(None, None)``."""
+        if self.u_lower is None and self.u_upper is None:
+            return None, None
+        kw = dict(dtype=self.dtype, device=self.device)
+        lo = torch.as_tensor(-math.inf if self.u_lower is None else self.u_lower, **kw)
+        hi = torch.as_tensor(math.inf if self.u_upper is None else self.u_upper, **kw)
+        return lo, hi
+
+
+@dataclass(frozen=True, eq=False)
+class ILQRSolution:
+    """Result of :func:`ilqr`.
+
+    Attributes:
+        x: ``(*B, T+1, n)`` states, ``u``: ``(*B, T, m)`` controls (differentiable per :class:`GradMode`).
+        K: ``(*B, T, m, n)`` feedback gains at the solution (rows of clamped controls are zero) and
+            ``k``: ``(*B, T, m)`` such that the local policy is ``u_t = clip(K_t x_t + k_t)``, i.e.
+            ``k_t = û_t - K_t x̂_t`` (Eq. 94 with the sign convention of :mod:`controllers.problem`).
+        cost: ``(*B,)`` total cost at the solution (differentiable).
+        status: per-element :class:`~controllers.problem.SolverStatus` (``Reason`` codes).
+        clamped: ``(*B, T, m)`` bool, controls on a bound with an active limit at the solution.
+        cost_history: ``(iterations+1, *B)`` cost after each iteration (first row: initial guess).
+        mu: ``(*B,)`` final regularization.
+    """
+
+    x: Tensor
+    u: Tensor
+    K: Tensor
+    k: Tensor
+    cost: Tensor
+    status: SolverStatus
+    clamped: Tensor
+    cost_history: Tensor
+    mu: Tensor
+
+
+# --------------------------------------------------------------------------------------------------
+# dynamics and cost derivatives
+# --------------------------------------------------------------------------------------------------
+
+
+def _step(dyn, x: Tensor, u: Tensor, t: int) -> Tensor:
+    return dyn.step(x, u, t)
+
+
+def _rollout(dyn, x0: Tensor, u: Tensor) -> Tensor:
+    xs = [x0]
+    for t in range(u.shape[-2]):
+        xs.append(_step(dyn, xs[-1], u[..., t, :], t))
+    shape = torch.broadcast_shapes(*[v.shape for v in xs])
+    return torch.stack([v.expand(shape) for v in xs], dim=-2)
+
+
+def _linearize(dyn, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """Time-major ``A (T, *B, n, n)``, ``B (T, *B, n, m)`` along ``x (*B, T+1, n)``, ``u (*B, T, m)``."""
+    T = u.shape[-2]
+    if isinstance(dyn, LinearDynamics):
+        A = dyn.A.movedim(-3, 0)
+        B = dyn.B.movedim(-3, 0)
+        return A.expand(T, *A.shape[1:]), B.expand(T, *B.shape[1:])
+    if _is_system(dyn):
+        return dyn.jacobian(x[..., :T, :].movedim(-2, 0), u.movedim(-2, 0), 0)
+    from controllers.linearize import jacobians
+
+    # analytic Jacobians when the dynamics has them, torch.func otherwise (controllers.linearize)
+    As, Bs = [], []
+    for t in range(T):
+        _, A, B = jacobians(dyn, x[..., t, :], u[..., t, :], t)
+        As.append(A)
+        Bs.append(B)
+    return torch.stack(As), torch.stack(Bs)
+
+
+def _quad_derivatives(cost: QuadraticCost, x: Tensor, u: Tensor):
+    """Exact derivatives of a :class:`QuadraticCost` (no factor ½: ``H = 2Q``), batch-first."""
+    T = u.shape[-2]
+    dx = x if cost.x_ref is None else x - cost.x_ref
+    du = u if cost.u_ref is None else u - cost.u_ref
+    gx = 2 * (cost.Q @ dx.unsqueeze(-1)).squeeze(-1)
+    gu = 2 * (cost.R @ du.unsqueeze(-1)).squeeze(-1)
+    if cost.q is not None:
+        gx = gx + 2 * cost.q
+    if cost.r is not None:
+        gu = gu + 2 * cost.r
+    Hux = None
+    if cost.N is not None:
+        Nd = 2 * (cost.N @ du.unsqueeze(-1)).squeeze(-1)
+        gx = gx + torch.cat([Nd, torch.zeros_like(Nd[..., :1, :])], -2)
+        gu = gu + 2 * (cost.N.mT @ dx[..., :T, :].unsqueeze(-1)).squeeze(-1)
+        Hux = 2 * cost.N.mT
+    Hxx = 2 * cost.Q
+    Huu = 2 * cost.R
+    return gx, gu, Hxx, Hux, Huu
+
+
+def _autograd_cost_derivatives(cost, x: Tensor, u: Tensor):
+    """Exact gradient and per-step Hessian blocks of a time-separable cost by double backward."""
+    n, m = x.shape[-1], u.shape[-1]
+    with torch.enable_grad():
+        xg = x.detach().requires_grad_(True)
+        ug = u.detach().requires_grad_(True)
+        J = cost.evaluate(xg, ug).sum()
+        gx, gu = torch.autograd.grad(J, (xg, ug), create_graph=True)
+        Hxx, Hxu, Huu = _hessian_rows(gx, gu, xg, ug, n, m)
+    return gx.detach(), gu.detach(), Hxx, Hxu[..., :-1, :, :].mT, Huu
+
+
+def _hessian_rows(gx: Tensor, gu: Tensor, xg: Tensor, ug: Tensor, n: int, m: int):
+    """Per-time-step Hessian blocks of a sum of per-step terms from its gradient (built with a graph)."""
+    rx, rxu, ru = [], [], []
+    for i in range(n):
+        if gx.requires_grad:
+            a, b = torch.autograd.grad(gx[..., i].sum(), (xg, ug), retain_graph=True, allow_unused=True)
+        else:
+            a = b = None
+        rx.append(torch.zeros_like(xg) if a is None else a)
+        # u has T steps, x has T+1: pad the last (terminal) step with zeros
+        rxu.append(torch.zeros_like(xg[..., :1]).expand(*xg.shape[:-1], m) if b is None
+                   else torch.cat([b, torch.zeros_like(b[..., :1, :])], -2))
+    for i in range(m):
+        if gu.requires_grad:
+            (c,) = torch.autograd.grad(gu[..., i].sum(), (ug,), retain_graph=True, allow_unused=True)
+        else:
+            c = None
+        ru.append(torch.zeros_like(ug) if c is None else c)
+    return torch.stack(rx, -2).detach(), torch.stack(rxu, -2).detach(), torch.stack(ru, -2).detach()
+
+
+def _cost_derivatives(cost, x: Tensor, u: Tensor):
+    """``gx (*B,T+1,n)``, ``gu (*B,T,m)``, ``Hxx (…,T+1,n,n)``, ``Hux (…,T,m,n)`` or None, ``Huu``."""
+    if isinstance(cost, QuadraticCost):
+        return _quad_derivatives(cost, x, u)
+    if callable(getattr(cost, "derivatives", None)):
+        return cost.derivatives(x, u)
+    return _autograd_cost_derivatives(cost, x, u)
+
+
+def _tm(v: Tensor | None, k: int, T: int, nb: int) -> Tensor | None:
+    """Batch-first timed tensor with ``k`` trailing dims -> time-major ``(T, *b, ...)`` with ``nb`` batch
+    dims (singletons inserted where the tensor is shared), expanded to ``T`` steps (a view)."""
+    if v is None:
+        return None
+    d = v.dim() - k - 1
+    v = v.movedim(d, 0)
+    v = v.reshape(v.shape[0], *([1] * (nb - d)), *v.shape[1:])
+    return v.expand(T, *v.shape[1:])
+
+
+# --------------------------------------------------------------------------------------------------
+# backward pass (Eq. 91-93 with the box-QP feedforward of control-limited DDP)
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Backward:
+    K: Tensor  # (T, *B, m, n)
+    k: Tensor  # (T, *B, m)
+    free: Tensor  # (T, *B, m)
+    ok: Tensor  # (*B,)
+    dV1: Tensor  # (*B,)  Σ kᵀ Q_u
+    dV2: Tensor  # (*B,)  Σ ½ kᵀ Q_uu k
+
+
+def _factor(H: Tensor) -> tuple[Tensor, Tensor]:
+    """Cholesky factor of SPD ``H (*B, m, m)`` and an ``ok (*B,)`` mask; failed factors are identity.
+
+    One variable is a square root (a batched LAPACK call per time step costs more than the whole step).
+    """
+    m = H.shape[-1]
+    if m == 1:
+        ok = H[..., 0, 0] > 0
+        one = torch.ones((), dtype=H.dtype, device=H.device)
+        return torch.sqrt(torch.where(ok[..., None, None], H, one)), ok
+    L, info = torch.linalg.cholesky_ex(H)
+    ok = info == 0
+    return torch.where(ok[..., None, None], L, torch.eye(m, dtype=H.dtype, device=H.device)), ok
+
+
+def _solve_factor(L: Tensor, b: Tensor) -> Tensor:
+    """``H⁻¹ b`` from the factor of :func:`_factor`."""
+    if L.shape[-1] == 1:
+        return b / (L * L)
+    return torch.cholesky_solve(b, L)
+
+
+def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) -> _Backward:
+    """Riccati recursion on the local model (time-major inputs); ``lo/hi`` are bounds on ``Δu``.
+
+    With ``F_t = [A_t, B_t]`` and the stage Hessian ``H_t`` / gradient ``g_t`` over ``(x, u)`` each step is
+    ``Q = H_t + F_tᵀ V_xx F_t``, ``q = g_t + F_tᵀ v_x`` (Eq. 91); the feedforward solves the box QP on the
+    regularized ``Q_uu + μI`` (Eq. 92 when no limit is active), clamped rows of ``K`` are zero, and with
+    ``M = [I; K]``: ``V_xx = Mᵀ Q M``, ``v_x = Mᵀ (q + Q_{:,u} k)`` (Eq. 93 for the clamped policy).
+    """
+    T, n, m = A.shape[0], A.shape[-1], B.shape[-1]
+    dtype, device = A.dtype, A.device
+    # stage quantities over z = (x, u), all steps at once
+    lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    F = torch.cat([A.expand(*lead, n, n), B.expand(*lead, n, m)], -1)
+    hb = torch.broadcast_shapes(Hxx.shape[:-2][1:], Huu.shape[:-2][1:],
+                                *([] if Hux is None else [Hux.shape[:-2][1:]]))
+    hb = (T, *hb)
+    Hxx_t = Hxx[:T].expand(*hb, n, n)
+    Hxu = torch.zeros(*hb, n, m, dtype=dtype, device=device) if Hux is None else Hux.mT.expand(*hb, n, m)
+    Hz = torch.cat([torch.cat([Hxx_t, Hxu], -1), torch.cat([Hxu.mT, Huu.expand(*hb, m, m)], -1)], -2)
+    gz = torch.cat([gx[:T], gu], -1)
+    Vx = gx[T].expand(*bs, n)
+    Vxx = Hxx[T].expand(*bs, n, n)
+    eye_n = torch.eye(n, dtype=dtype, device=device).expand(*bs, n, n)
+    eye_m = torch.eye(m, dtype=dtype, device=device)
+    mu_I = mu[..., None, None] * eye_m
+    Ks, ks, frees, goods, d1, d2 = [None] * T, [None] * T, [None] * T, [], [], []
+    scalar = m == 1 and lo is not None
+    for t in range(T - 1, -1, -1):
+        Ft = F[t]
+        FV = Ft.mT @ Vxx
+        Qz = Hz[t] + FV @ Ft
+        qz = gz[t] + (Ft.mT @ Vx.unsqueeze(-1)).squeeze(-1)
+        Quu, Qux, Qu = Qz[..., n:, n:], Qz[..., n:, :n], qz[..., n:]
+        if scalar:
+            # one control: the box QP is a clip, the factor a scalar
+            h = Quu[..., 0] + mu.unsqueeze(-1)  # (*B, 1)
+            good = h[..., 0] > 0
+            h = torch.where(h > 0, h, torch.ones((), dtype=dtype, device=device))
+            kraw = -Qu / h
+            k = torch.clamp(kraw, lo[t], hi[t])
+            free = (kraw >= lo[t]) & (kraw <= hi[t])
+            K = -(free.to(dtype) / h).unsqueeze(-1) * Qux
+        elif lo is None:
+            L, good = _factor(Quu + mu_I)
+            k = -_solve_factor(L, Qu.unsqueeze(-1)).squeeze(-1)
+            K = -_solve_factor(L, Qux)
+            free = torch.ones(*bs, m, dtype=torch.bool, device=device)
+        else:
+            Qreg = (Quu + mu_I).expand(*bs, m, m)
+            res = box_qp(Qreg, Qu.expand(*bs, m), lo[t], hi[t], x0=None if k_warm is None else k_warm[t],
+                         check=False)
+            free = res.free
+            good = (res.status != int(BoxQPStatus.NOT_POSITIVE_DEFINITE)) & \
+                (res.status != int(BoxQPStatus.NON_FINITE))
+            L, okL = _factor(masked_hessian(Qreg, free))
+            good = good & okL
+            k = torch.where(good.unsqueeze(-1), res.x, torch.zeros((), dtype=dtype, device=device))
+            K = -_solve_factor(L, free.to(dtype).unsqueeze(-1) * Qux.expand(*bs, m, n))
+        M = torch.cat([eye_n, K.expand(*bs, m, n)], -2)  # (*B, n+m, n)
+        Qk = (Qz[..., :, n:] @ k.unsqueeze(-1)).squeeze(-1)
+        Vx = (M.mT @ (qz + Qk).unsqueeze(-1)).squeeze(-1)
+        Vxx = M.mT @ Qz @ M
+        Vxx = 0.5 * (Vxx + Vxx.mT)
+        d1.append((k * Qu).sum(-1))
+        d2.append((k * Qk[..., n:]).sum(-1))
+        goods.append(good)
+        Ks[t], ks[t], frees[t] = K.expand(*bs, m, n), k.expand(*bs, m), free.expand(*bs, m)
+    ok = torch.stack(goods).all(0).expand(bs)
+    dV1 = torch.stack(d1).sum(0).expand(bs)
+    dV2 = 0.5 * torch.stack(d2).sum(0).expand(bs)
+    return _Backward(torch.stack(Ks), torch.stack(ks), torch.stack(frees), ok, dV1, dV2)
+
+
+# --------------------------------------------------------------------------------------------------
+# batch formulation (Algorithm 4)
+# --------------------------------------------------------------------------------------------------
+
+
+def _batch_step(A, B, gx, gu, Hxx, Hux, Huu, mu, lo, hi, k_warm, bs):
+    """Gauss-Newton step over the whole control sequence (Eq. 87), a box QP when limited.
+
+    Time-major inputs; returns ``(Δu (T, *B, m), ok (*B,), dV1, dV2)``.
+    """
+    T, n, m = A.shape[0], A.shape[-1], B.shape[-1]
+    dtype, device = A.dtype, A.device
+    from controllers.lifted import transfer_matrices
+
+    Su = transfer_matrices(A.movedim(0, -3), B.movedim(0, -3), None, T)[1].expand(*bs, (T + 1) * n, T * m)
+    Suk = Su.reshape(*bs, T + 1, n, T * m)
+    gxf = gx.movedim(0, -2).expand(*bs, T + 1, n).reshape(*bs, (T + 1) * n)
+    guf = gu.movedim(0, -2).expand(*bs, T, m).reshape(*bs, T * m)
+    # S_uᵀ H_xx S_u with the block-diagonal H_xx
+    HxxS = torch.einsum("t...ij,...tjk->...tik", Hxx.expand(T + 1, *bs, n, n), Suk)
+    H = torch.einsum("...tik,...til->...kl", Suk, HxxS)
+    if Hux is not None:
+        # cross terms Σ_t Δx_tᵀ H_xu,t Δu_t with Δx_t = S_t Δu: rows of control t get H_ux,t S_t
+        C = torch.einsum("...tik,t...mi->...tmk", Suk[..., :T, :, :], Hux.expand(T, *bs, m, n))
+        C = C.reshape(*bs, T * m, T * m)
+        H = H + C + C.mT
+    Hb = torch.zeros(*bs, T, m, T, m, dtype=dtype, device=device)
+    idx = torch.arange(T, device=device)
+    Hb[..., idx, :, idx, :] = Huu.expand(T, *bs, m, m)
+    H = H + Hb.reshape(*bs, T * m, T * m)
+    H = 0.5 * (H + H.mT)
+    g = (Su.mT @ gxf.unsqueeze(-1)).squeeze(-1) + guf  # S_uᵀ g_x + g_u
+    eye = torch.eye(T * m, dtype=dtype, device=device)
+    Hreg = H + mu[..., None, None] * eye
+    if lo is None:
+        L, info = torch.linalg.cholesky_ex(Hreg)
+        ok = info == 0
+        L = torch.where(ok[..., None, None], L, eye)
+        du = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
+    else:
+        lof = lo.movedim(0, -2).expand(*bs, T, m).reshape(*bs, T * m)
+        hif = hi.movedim(0, -2).expand(*bs, T, m).reshape(*bs, T * m)
+        warm = None if k_warm is None else k_warm.movedim(0, -2).reshape(*bs, T * m)
+        res = box_qp(Hreg, g, lof, hif, x0=warm)
+        ok = (res.status != int(BoxQPStatus.NOT_POSITIVE_DEFINITE)) & \
+            (res.status != int(BoxQPStatus.NON_FINITE))
+        du = res.x
+    du = torch.where(ok.unsqueeze(-1), du, torch.zeros((), dtype=dtype, device=device))
+    dV1 = (du * g).sum(-1)
+    dV2 = 0.5 * (du * (H @ du.unsqueeze(-1)).squeeze(-1)).sum(-1)
+    return du.reshape(*bs, T, m).movedim(-2, 0), ok, dV1, dV2
+
+
+# --------------------------------------------------------------------------------------------------
+# forward pass with a vectorized backtracking line search (Algorithm 1)
+# --------------------------------------------------------------------------------------------------
+
+
+def _clip(u: Tensor, lo: Tensor | None, hi: Tensor | None) -> Tensor:
+    if lo is None:
+        return u
+    return torch.minimum(torch.maximum(u, lo), hi)
+
+
+def _forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi):
+    """Roll out every step size at once: ``u_t = clip(û_t + α k_t + K_t (x_t - x̂_t))`` (Eq. 101).
+
+    ``alphas (S,)``; returns ``x (S, *B, T+1, n)``, ``u (S, *B, T, m)``.  ``K=None``: open loop (Eq. 100).
+    """
+    S, T = alphas.shape[0], u.shape[-2]
+    a = alphas.view(S, *([1] * (u.dim() - 1)))
+    xt = x0.expand(S, *x0.shape)
+    xs, us = [xt], []
+    for t in range(T):
+        ut = u[..., t, :] + a * k[t]
+        if K is not None:
+            ut = ut + (K[t] @ (xt - x[..., t, :]).unsqueeze(-1)).squeeze(-1)
+        ut = _clip(ut, None if lo is None else lo[..., t, :], None if hi is None else hi[..., t, :])
+        us.append(ut)
+        xt = _step(dyn, xt, ut, t)
+        xs.append(xt)
+    return torch.stack(xs, -2), torch.stack(us, -2)
+
+
+def _pick(v: Tensor, idx: Tensor) -> Tensor:
+    """``v (S, *B, ...)``, ``idx (*B,)`` -> ``v[idx[b], b, ...]``."""
+    extra = v.dim() - 1 - idx.dim()
+    i = idx.view(1, *idx.shape, *([1] * extra)).expand(1, *v.shape[1:])
+    return torch.gather(v, 0, i).squeeze(0)
+
+
+# --------------------------------------------------------------------------------------------------
+# solver
+# --------------------------------------------------------------------------------------------------
+
+
+def _defaults(opts: ILQROptions, dtype: torch.dtype) -> tuple[float, float]:
+    single = dtype in (torch.float32, torch.float16, torch.bfloat16)
+    tol = opts.tol if opts.tol is not None else (1e-4 if single else 1e-8)
+    tol_cost = opts.tol_cost if opts.tol_cost is not None else (1e-6 if single else 1e-12)
+    return tol, tol_cost
+
+
+def _bcast(v: Tensor | None, shape) -> Tensor | None:
+    return None if v is None else v.expand(shape)
+
+
+def ilqr(
+    problem: ILQRProblem,
+    u_init: Tensor | None = None,
+    *,
+    method: ILQRMethod | str = ILQRMethod.RECURSIVE,
+    grad: GradMode | str = GradMode.IMPLICIT,
+    options: ILQROptions | None = None,
+) -> ILQRSolution:
+    """Solve a batch of control-limited nonlinear optimal-control problems by iLQR.
+
+    Args:
+        problem: :class:`ILQRProblem`.
+        u_init: ``(*B, T, m)`` or ``(T, m)`` initial controls (projected onto the limits); zeros by default.
+            For receding-horizon use pass the shifted previous solution (:mod:`controllers.mpc`).
+        method: :class:`ILQRMethod` (``"recursive"``, Algorithm 5, or ``"batch"``, Algorithm 4).
+        grad: :class:`GradMode` (``"implicit"``, ``"unroll"`` or ``"none"``).
+        options: :class:`ILQROptions`.
+
+    Returns:
+        :class:`ILQRSolution`; per-element ``status.reason`` is ``CONVERGED``, ``MAX_ITERATIONS``,
+        ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``, ``NONFINITE_INPUT`` (NaN/inf in
+        ``x0`` or ``u_init``: that element's outputs are NaN) or ``DIVERGED`` (the initial rollout is not
+        finite).  Every other element is solved as if alone.
+    """
+    if not isinstance(problem, ILQRProblem):
+        raise TypeError(f"ilqr: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
+    method, grad = ILQRMethod(method), GradMode(grad)
+    opts = options if options is not None else ILQROptions()
+    T, n, m = problem.T, problem.n, problem.m
+    dtype, device = problem.dtype, problem.device
+    bs = problem.batch_shape
+    kw = dict(dtype=dtype, device=device)
+    if u_init is None:
+        u_init = torch.zeros(*bs, T, m, **kw)
+    else:
+        if not isinstance(u_init, Tensor) or u_init.dtype != dtype:
+            raise TypeError(f"ilqr: u_init must be a tensor of dtype {dtype}")
+        if u_init.dim() < 2 or tuple(u_init.shape[-2:]) != (T, m):
+            raise ValueError(f"ilqr: u_init must have shape (*B, {T}, {m}), got {tuple(u_init.shape)}")
+        bs = torch.broadcast_shapes(bs, u_init.shape[:-2])
+        u_init = u_init.expand(*bs, T, m)
+    lo, hi = problem.bounds()
+    lo, hi = _bcast(lo, (*bs, T, m)), _bcast(hi, (*bs, T, m))
+    x0 = problem.x0.expand(*bs, n)
+    bad = ~torch.isfinite(x0).all(-1) | ~torch.isfinite(u_init).flatten(-2).all(-1)
+    zero = torch.zeros((), **kw)
+    x0s = torch.where(bad.unsqueeze(-1), zero, x0)
+    u0 = _clip(torch.where(bad[..., None, None], zero, u_init), lo, hi)
+
+    ctx = torch.enable_grad() if grad is GradMode.UNROLL else torch.no_grad()
+    with ctx:
+        if grad is not GradMode.UNROLL:
+            x0s, u0 = x0s.detach(), u0.detach()
+        out = _solve(problem, x0s, u0, lo, hi, bad, bs, method, opts)
+    x, u, K, kff, free, reason, iters, hist, mu = out
+    if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
+        x, u = _attach_implicit(problem, x0s, x, u, free, bs)
+    cost = problem.cost.evaluate(x, u).expand(bs)
+    nanv = torch.full((), math.nan, **kw)
+    b1 = bad.unsqueeze(-1).unsqueeze(-1)
+    x = torch.where(b1, nanv, x)
+    u = torch.where(b1, nanv, u)
+    cost = torch.where(bad, nanv, cost)
+    status = SolverStatus(converged=reason == int(Reason.CONVERGED), iterations=iters, reason=reason)
+    return ILQRSolution(x=x, u=u, K=K, k=kff, cost=cost, status=status, clamped=~free, cost_history=hist,
+                        mu=mu)
+
+
+def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
+    dyn, cost = problem.dynamics, problem.cost
+    T, nb = problem.T, len(bs)
+    dtype, device = problem.dtype, problem.device
+    kw = dict(dtype=dtype, device=device)
+    tol, tol_cost = _defaults(opts, dtype)
+    f = opts.mu_factor
+    lo_tm = None if lo is None else lo.movedim(-2, 0)
+    hi_tm = None if hi is None else hi.movedim(-2, 0)
+    alphas = 0.5 ** torch.arange(opts.line_search_steps, **kw)
+    eps = torch.finfo(dtype).eps
+
+    x = _rollout(dyn, x0, u)
+    J = cost.evaluate(x, u).expand(bs)
+    reason = torch.full(bs, int(Reason.MAX_ITERATIONS), dtype=torch.int64, device=device)
+    diverged = ~torch.isfinite(J) & ~bad
+    reason = torch.where(bad, int(Reason.NONFINITE_INPUT), reason)
+    reason = torch.where(diverged, int(Reason.DIVERGED), reason)
+    active = ~bad & ~diverged
+    mu = torch.full(bs, float(opts.mu_init), **kw)
+    dmu = torch.ones(bs, **kw)
+    iters = torch.zeros(bs, dtype=torch.int64, device=device)
+    hist = [J]
+    k_warm = None
+
+    def grow(mu, dmu, where):
+        dmu = torch.where(where, torch.clamp(dmu * f, min=f), dmu)
+        mu = torch.where(where, torch.clamp(mu * dmu, min=opts.mu_min), mu)
+        return mu, dmu
+
+    for _ in range(opts.max_iter):
+        if not bool(active.any()):
+            break
+        A, B = _linearize(dyn, x, u)
+        gx, gu, Hxx, Hux, Huu = _cost_derivatives(cost, x, u)
+        gx_tm, gu_tm = gx.movedim(-2, 0), gu.movedim(-2, 0)
+        Hxx_tm, Hux_tm, Huu_tm = _tm(Hxx, 2, T + 1, nb), _tm(Hux, 2, T, nb), _tm(Huu, 2, T, nb)
+        u_tm = u.movedim(-2, 0)
+        dlo = None if lo is None else lo_tm - u_tm
+        dhi = None if hi is None else hi_tm - u_tm
+        while True:
+            if method is ILQRMethod.RECURSIVE:
+                bw = _backward_pass(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi, k_warm, bs)
+                K, k, ok, dV1, dV2 = bw.K, bw.k, bw.ok, bw.dV1, bw.dV2
+            else:
+                k, ok, dV1, dV2 = _batch_step(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi,
+                                              k_warm, bs)
+                K = None
+            fail = active & ~ok
+            if not bool(fail.any()):
+                break
+            mu, dmu = grow(mu, dmu, fail)
+            over = fail & (mu > opts.mu_max)
+            reason = torch.where(over, int(Reason.SINGULAR_QUU), reason)
+            active = active & ~over
+            if not bool((active & ~ok).any()):
+                break
+        # Δ_min of Algorithms 4-5: the step is negligible -> converged at the current point
+        kmax = k.abs().amax(dim=(0, -1))
+        umax = u.abs().flatten(-2).amax(-1)
+        small = active & (kmax <= tol * (1 + umax))
+        reason = torch.where(small, int(Reason.CONVERGED), reason)
+        active = active & ~small
+        if not bool(active.any()):
+            break
+        xc, uc = _forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi)
+        Jc = cost.evaluate(xc, uc).expand(alphas.shape[0], *bs)
+        a = alphas.view(-1, *([1] * len(bs)))
+        expected = -(a * dV1 + a * a * dV2)
+        okc = torch.isfinite(Jc) & (J - Jc > opts.armijo * expected.clamp_min(0))
+        # below round-off the cost cannot confirm a decrease: trust the local model for the full step,
+        # which keeps the last Newton steps (quadratic convergence) and the solution accurate to ~eps
+        noise = 64 * eps * J.abs().clamp_min(1.0)
+        okc[0] = okc[0] | (torch.isfinite(Jc[0]) & (expected[0].abs() <= noise) & (Jc[0] <= J + noise))
+        anyok = okc.any(0)
+        first = torch.argmax(okc.to(torch.int8), dim=0)
+        accept = active & anyok
+        Jn = _pick(Jc, first)
+        improvement = J - Jn
+        x = torch.where(accept[..., None, None], _pick(xc, first), x)
+        u = torch.where(accept[..., None, None], _pick(uc, first), u)
+        Jold = J
+        J = torch.where(accept, Jn, J)
+        iters = iters + active.to(torch.int64)
+        # regularization schedule (Tassa et al.): shrink on success, grow on failure
+        dmu_s = torch.clamp(dmu / f, max=1 / f)
+        mu_s = mu * dmu_s
+        mu_s = torch.where(mu_s > opts.mu_min, mu_s, torch.zeros((), **kw))
+        mu = torch.where(accept, mu_s, mu)
+        dmu = torch.where(accept, dmu_s, dmu)
+        failed = active & ~anyok
+        mu, dmu = grow(mu, dmu, failed)
+        over = failed & (mu > opts.mu_max)
+        reason = torch.where(over, int(Reason.LINE_SEARCH_FAILED), reason)
+        active = active & ~over
+        # a measured (not round-off) small decrease: converged; below round-off keep taking Newton steps
+        # until the step itself is negligible
+        tiny = accept & (improvement <= tol_cost * Jold.abs()) & (_pick(expected, first) > noise)
+        reason = torch.where(tiny, int(Reason.CONVERGED), reason)
+        active = active & ~tiny
+        hist.append(J)
+        k_warm = torch.where(accept.unsqueeze(-1), torch.zeros((), **kw), k)
+
+    # gains and clamped set at the returned point (one more backward pass)
+    A, B = _linearize(dyn, x, u)
+    gx, gu, Hxx, Hux, Huu = _cost_derivatives(cost, x, u)
+    u_tm = u.movedim(-2, 0)
+    dlo = None if lo is None else lo_tm - u_tm
+    dhi = None if hi is None else hi_tm - u_tm
+    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), _tm(Hxx, 2, T + 1, nb),
+                        _tm(Hux, 2, T, nb), _tm(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
+    K = bw.K.movedim(0, -3)
+    free = bw.free.movedim(0, -2)
+    kff = u - (K @ x[..., :T, :].unsqueeze(-1)).squeeze(-1)
+    return x, u, K, kff, free, reason, iters, torch.stack(hist), mu
+
+
+# --------------------------------------------------------------------------------------------------
+# implicit gradients
+# --------------------------------------------------------------------------------------------------
+
+
+def _step_all(dyn, x: Tensor, u: Tensor) -> Tensor:
+    """``f(x_t, u_t, t)`` for all ``t``: ``x (*B, T, n)``, ``u (*B, T, m)`` -> ``(*B, T, n)``."""
+    if _is_system(dyn):
+        return dyn.step(x.movedim(-2, 0), u.movedim(-2, 0), 0).movedim(0, -2)
+    return torch.stack([dyn.step(x[..., t, :], u[..., t, :], t) for t in range(u.shape[-2])], -2)
+
+
+def _lq_newton(A, B, c, Q, R, N, q, r, x0, T):
+    """The LQ (Newton) step, differentiable in ``c, q, r, x0`` through :mod:`controllers.riccati`."""
+    from controllers import riccati
+
+    try:
+        import controllers.implicit  # noqa: F401
+
+        mode = riccati.GradMode.IMPLICIT
+    except ImportError:  # pragma: no cover - the implicit backward of the LQ solver is optional
+        mode = riccati.GradMode.UNROLLED
+    x, u, *_ = riccati.lqr(A, B, c, Q, R, N, q, r, x0, T, grad=mode)
+    return x, u
+
+
+def _attach_implicit(problem: ILQRProblem, x0s: Tensor, x: Tensor, u: Tensor, free: Tensor, bs):
+    """Give ``x, u`` the implicit derivatives of the KKT conditions at the solution (module docstring).
+
+    ``x + (δx - sg(δx))`` where ``δx`` is the Newton step on the KKT system (≈ 0 at a stationary point):
+    the value is unchanged and the derivative is ``-K⁻¹ ∂F/∂θ``.  Clamped controls are fixed on their
+    bounds (their stationarity rows are replaced by ``δu = 0``).
+    """
+    dyn, cost = problem.dynamics, problem.cost
+    T, n, m = problem.T, problem.n, problem.m
+    x0 = problem.x0.expand(*bs, n)
+    x0 = torch.where(torch.isfinite(x0), x0, torch.zeros((), dtype=x0.dtype, device=x0.device))
+    x, u = x.detach(), u.detach()
+    A, B = _linearize(dyn, x, u)  # time-major
+    A, B = A.detach(), B.detach()
+    with torch.no_grad():
+        gx, gu, *_ = _cost_derivatives(cost, x, u)
+        lam = [gx[..., T, :]]
+        for t in range(T - 1, -1, -1):
+            lam.append(gx[..., t, :] + (A[t].mT @ lam[-1].unsqueeze(-1)).squeeze(-1))
+        lam = torch.stack(lam[::-1], -2).expand(*bs, T + 1, n)
+    with torch.enable_grad():
+        xs = x.clone().requires_grad_(True)
+        us = u.clone().requires_grad_(True)
+        cdyn = _step_all(dyn, xs[..., :T, :], us) - xs[..., 1:, :]
+        c0 = x0 - xs[..., 0, :]
+        L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * cdyn).sum() + (lam[..., 0, :] * c0).sum()
+        rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
+        if not any(v.requires_grad for v in (c0, cdyn)) and not _depends_on_params(rx, ru, xs, us):
+            return x, u
+        Hxx, Hxu, Huu = _hessian_rows(rx, ru, xs, us, n, m)
+        fm = free.to(x.dtype)
+        Bm = B.movedim(0, -3) * fm.unsqueeze(-2)
+        R = 0.5 * masked_hessian(Huu, free)
+        N = 0.5 * Hxu[..., :T, :, :] * fm.unsqueeze(-2)
+        Q = 0.25 * (Hxx + Hxx.mT)
+        R = 0.5 * (R + R.mT)
+        dx, du = _lq_newton(A.movedim(0, -3).expand(*bs, T, n, n), Bm, cdyn, Q, R, N, 0.5 * rx,
+                            0.5 * ru * fm, c0, T)
+    return x + (dx - dx.detach()), u + (du - du.detach())
+
+
+def _depends_on_params(rx: Tensor, ru: Tensor, xs: Tensor, us: Tensor) -> bool:
+    """Whether the stationarity residual has a graph to anything other than the trajectory itself."""
+    seen, stack = set(), [v.grad_fn for v in (rx, ru) if v.grad_fn is not None]
+    own = {id(xs), id(us)}
+    while stack:
+        fn = stack.pop()
+        if fn is None or id(fn) in seen:
+            continue
+        seen.add(id(fn))
+        var = getattr(fn, "variable", None)
+        if var is not None and id(var) not in own and var.requires_grad:
+            return True
+        stack.extend(nf for nf, _ in fn.next_functions)
+    return False
