@@ -92,7 +92,7 @@ class LQRFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, A, B, c, Q, R, N, q, r, x0, T, bs):
         n, m = A.shape[-1], B.shape[-1]
-        x, u, J, fac, F = _ric._solve_core(A, B, c, Q, R, N, q, r, x0, T, bs)
+        x, u, J, fac, F = _ric._solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, keep_huu=True)
         Bt = x.shape[0]
         K = fac.Kt[..., :n]
         k = fac.Kt[..., n]

@@ -92,7 +92,8 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
     value ``Ṽ_T (bV, n+1, n+1)`` from canonical tensors (problem-module shapes, explicit time dims).
 
     Leading dims are 1 when a quantity is shared by the batch, time dims are 1 when time-invariant.
-    ``C̃`` is symmetrized, so the solution depends on the symmetric parts of Q, R only.
+    Q and R must be symmetric (:class:`~controllers.problem.QuadraticCost` checks it); they are used
+    as given, and the implicit gradients are the symmetric ones.
     """
     n, m = A.shape[-1], B.shape[-1]
     A, B, c = _flat(A, bs, 2), _flat(B, bs, 2), _flat(c, bs, 1)
@@ -112,23 +113,30 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
     parts = [Qs, R] + [v for v in (N, qs, r) if v is not None]
     bC = max(v.shape[0] for v in parts)
     TC = max(v.shape[1] for v in parts)
-    z = lambda *s: torch.zeros(bC, TC, *s, dtype=dt, device=dev)
-    Rr, Qq = _expand_bt(R, bC, TC), _expand_bt(Qs, bC, TC)
-    Nn = z(n, m) if N is None else _expand_bt(N, bC, TC)
-    qq = z(n) if qs is None else _expand_bt(qs, bC, TC)
-    rr = z(m) if r is None else _expand_bt(r, bC, TC)
-    C = torch.cat([
-        torch.cat([Rr, Nn.mT, rr.unsqueeze(-1)], -1),
-        torch.cat([Nn, Qq, qq.unsqueeze(-1)], -1),
-        torch.cat([rr.unsqueeze(-2), qq.unsqueeze(-2), z(1, 1)], -1),
-    ], -2)
-    C = 0.5 * (C + C.mT)
+    # slice assignments into one buffer (no concatenations, no transposed copies of the whole thing)
+    C = torch.empty(bC, TC, m + n + 1, m + n + 1, dtype=dt, device=dev)
+    C[:, :, :m, :m] = R
+    C[:, :, m:m + n, m:m + n] = Qs
+    if N is None:
+        C[:, :, :m, m:m + n] = 0.0
+        C[:, :, m:m + n, :m] = 0.0
+    else:
+        C[:, :, :m, m:m + n] = N.mT
+        C[:, :, m:m + n, :m] = N
+    for lo, hi, v in ((0, m, r), (m, m + n, qs)):
+        if v is None:
+            C[:, :, lo:hi, -1] = 0.0
+            C[:, :, -1, lo:hi] = 0.0
+        else:
+            C[:, :, lo:hi, -1] = v
+            C[:, :, -1, lo:hi] = v
+    C[:, :, -1, -1] = 0.0
 
     QT = Q[:, -1]
     qT = None if q is None else q[:, -1]
     bV = max(QT.shape[0], 1 if qT is None else qT.shape[0])
     VT = torch.zeros(bV, n + 1, n + 1, dtype=dt, device=dev)
-    VT[:, :n, :n] = 0.5 * (QT + QT.mT)
+    VT[:, :n, :n] = QT
     if qT is not None:
         VT[:, :n, n] = qT
         VT[:, n, :n] = qT
@@ -147,13 +155,13 @@ class RiccatiFactors:
     is not positive definite)."""
 
     Kt: torch.Tensor
-    Huu: torch.Tensor
+    Huu: torch.Tensor | None
     V: torch.Tensor
     ok: torch.Tensor
 
 
-def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt: int, m: int
-                  ) -> RiccatiFactors:
+def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt: int, m: int,
+                  keep_huu: bool = True) -> RiccatiFactors:
     """Riccati recursion on the augmented state (module docstring); batch ``Bt``, horizon ``T``.
 
     No autograd graph (use :func:`_backward_graph` for that).  ``H_uu⁻¹ H_ux̃`` and the Schur complement
@@ -168,7 +176,7 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
     shared_F = F.shape[0] == 1
     tvF, tvC = F.shape[1] > 1, C.shape[1] > 1
     Ks = torch.empty(Bt, T, m, n1, dtype=dt, device=dev)
-    Huus = torch.empty(Bt, T, m, m, dtype=dt, device=dev)
+    Huus = torch.empty(Bt, T, m, m, dtype=dt, device=dev) if keep_huu else None
     Vs = torch.empty(Bt, T + 1, n1, n1, dtype=dt, device=dev)
     E = torch.eye(k, dtype=dt, device=dev)[:m].unsqueeze(-1)  # unit columns e_i (k, 1)
     V = VT.expand(Bt, n1, n1)
@@ -187,9 +195,10 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
             H = torch.matmul(Ft.mT, G).add_(Ct)
         else:
             H = torch.baddbmm(Ct, Ft.mT, G)
-        Huus[:, t] = H[:, :m, :m]
+        if keep_huu:
+            Huus[:, t] = H[:, :m, :m]
         for i in range(m):
-            inv = 1.0 / H[:, i:i + 1, i:i + 1]
+            inv = torch.reciprocal(H[:, i:i + 1, i:i + 1])
             pivs.append(inv)
             r = H[:, i:i + 1, :] * inv
             H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
@@ -202,30 +211,50 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
 
 
 def closed_loop(F: torch.Tensor, Kt: torch.Tensor, m: int) -> torch.Tensor:
-    """``Φ̃_t = F̃_x̃ + F̃_u K̃_t`` for all steps at once: ``(Bt, T, n+1, n+1)``."""
-    return torch.matmul(F[..., :, :m], Kt) + F[..., :, m:]
+    """``Φ̃_t = F̃_x̃ + F̃_u K̃_t`` for all steps at once: ``(Bt, T, n+1, n+1)`` (a sum of ``m`` outer
+    products, elementwise: cheaper than a batched matmul of many tiny matrices)."""
+    Phi = F[..., :, m:]
+    for j in range(m):
+        Phi = Phi + F[..., :, j:j + 1] * Kt[..., j:j + 1, :]
+    return Phi
 
 
-def _forward(Phi: torch.Tensor, x0t: torch.Tensor, T: int) -> torch.Tensor:
-    """Homogeneous states ``(Bt, T+1, n+1)`` of ``x̃_{t+1} = Φ̃_t x̃_t``."""
-    Bt, n1 = Phi.shape[0], Phi.shape[-1]
-    xs = torch.empty(Bt, T + 1, n1, 1, dtype=Phi.dtype, device=Phi.device)
+def _forward(F: torch.Tensor, Kt: torch.Tensor, x0t: torch.Tensor, T: int
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed-loop rollout ``u_t = K̃_t x̃_t``, ``x̃_{t+1} = F̃_x̃ x̃_t + F̃_u u_t``: ``(x̃ (Bt, T+1, n+1),
+    u (Bt, T, m))``, written into preallocated buffers (no graph)."""
+    Bt, m, n1 = Kt.shape[0], Kt.shape[-2], Kt.shape[-1]
+    xs = torch.empty(Bt, T + 1, n1, 1, dtype=Kt.dtype, device=Kt.device)
+    us = torch.empty(Bt, T, m, 1, dtype=Kt.dtype, device=Kt.device)
+    shared = F.shape[0] == 1
+    tv = F.shape[1] > 1
     x = x0t.unsqueeze(-1)
     xs[:, 0] = x
     for t in range(T):
-        x = torch.bmm(Phi[:, t], x)
+        Ft = F[:, t if tv else 0]
+        u = torch.bmm(Kt[:, t], x)
+        if shared:
+            x = torch.matmul(Ft[0, :, m:], x) + torch.matmul(Ft[0, :, :m], u)
+        else:
+            x = torch.baddbmm(torch.bmm(Ft[:, :, m:], x), Ft[:, :, :m], u)
+        us[:, t] = u
         xs[:, t + 1] = x
-    return xs.squeeze(-1)
+    return xs.squeeze(-1), us.squeeze(-1)
 
 
-def _forward_graph(Phi: torch.Tensor, x0t: torch.Tensor, T: int) -> torch.Tensor:
+def _forward_graph(F: torch.Tensor, Kt: torch.Tensor, x0t: torch.Tensor, T: int
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """Same as :func:`_forward` without in-place writes (for autograd through the recursion)."""
     x = x0t.unsqueeze(-1)
-    xs = [x]
+    xs, us = [x], []
+    m = Kt.shape[-2]
     for t in range(T):
-        x = torch.matmul(Phi[:, t], x)
+        Ft = F[:, t if F.shape[1] > 1 else 0]
+        u = torch.matmul(Kt[:, t], x)
+        x = torch.matmul(Ft[..., :, m:], x) + torch.matmul(Ft[..., :, :m], u)
         xs.append(x)
-    return torch.stack(xs, 1).squeeze(-1)
+        us.append(u)
+    return torch.stack(xs, 1).squeeze(-1), torch.stack(us, 1).squeeze(-1)
 
 
 def _backward_graph(F, C, VT, T: int, Bt: int, m: int) -> RiccatiFactors:
@@ -253,7 +282,8 @@ def _backward_graph(F, C, VT, T: int, Bt: int, m: int) -> RiccatiFactors:
                           ok=torch.stack(infos, 1) == 0)
 
 
-def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool = False):
+def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool = False,
+                keep_huu: bool = False):
     """Solve the canonical LQ problem; returns ``(x, u, J, factors, F)`` flattened to ``(Bt, ...)``.
 
     ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.
@@ -261,12 +291,10 @@ def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool 
     n, m = A.shape[-1], B.shape[-1]
     Bt = max(bs.numel(), 1)
     F, C, VT = assemble(A, B, c, Q, R, N, q, r, T, bs)
-    fac = (_backward_graph if graph else backward_pass)(F, C, VT, T, Bt, m)
-    Phi = closed_loop(F, fac.Kt, m)
+    fac = _backward_graph(F, C, VT, T, Bt, m) if graph else backward_pass(F, C, VT, T, Bt, m, keep_huu)
     x0f = x0.expand(*bs, n).reshape(Bt, n)
     x0t = torch.cat([x0f, torch.ones(Bt, 1, dtype=x0.dtype, device=x0.device)], -1)
-    xt = (_forward_graph if graph else _forward)(Phi, x0t, T)
-    u = torch.matmul(fac.Kt, xt[:, :T].unsqueeze(-1)).squeeze(-1)
+    xt, u = (_forward_graph if graph else _forward)(F, fac.Kt, x0t, T)
     J = (x0t.unsqueeze(-2) @ fac.V[:, 0] @ x0t.unsqueeze(-1)).reshape(Bt)
     return xt[..., :n], u, J, fac, F
 
