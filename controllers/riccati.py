@@ -114,7 +114,8 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
     bC = max(v.shape[0] for v in parts)
     TC = max(v.shape[1] for v in parts)
     # slice assignments into one buffer (no concatenations, no transposed copies of the whole thing)
-    C = torch.empty(bC, TC, m + n + 1, m + n + 1, dtype=dt, device=dev)
+    # time-major storage: the backward pass reads C[:, t] as one contiguous block
+    C = torch.empty(TC, bC, m + n + 1, m + n + 1, dtype=dt, device=dev).transpose(0, 1)
     C[:, :, :m, :m] = R
     C[:, :, m:m + n, m:m + n] = Qs
     if N is None:
@@ -152,7 +153,8 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
 class RiccatiFactors:
     """What the backward pass leaves behind (all ``(Bt, T, ...)``): gains ``Kt = [K, k] (m, n+1)``,
     ``Huu (m, m)``, value matrices ``V (Bt, T+1, n+1, n+1)`` and ``ok (Bt, T)`` (False where ``H_uu``
-    is not positive definite)."""
+    is not positive definite).  Without ``keep_huu`` (no gradient wanted) ``Huu`` is None and ``V``
+    holds only ``[Ṽ_0, Ṽ_T]``."""
 
     Kt: torch.Tensor
     Huu: torch.Tensor | None
@@ -175,39 +177,39 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
     dt, dev = VT.dtype, VT.device
     shared_F = F.shape[0] == 1
     tvF, tvC = F.shape[1] > 1, C.shape[1] > 1
-    Ks = torch.empty(Bt, T, m, n1, dtype=dt, device=dev)
-    Huus = torch.empty(Bt, T, m, m, dtype=dt, device=dev) if keep_huu else None
-    Vs = torch.empty(Bt, T + 1, n1, n1, dtype=dt, device=dev)
     E = torch.eye(k, dtype=dt, device=dev)[:m].unsqueeze(-1)  # unit columns e_i (k, 1)
     V = VT.expand(Bt, n1, n1)
-    Vs[:, T] = V
     F0 = F[0, 0] if shared_F else F[:, 0]
-    C0 = C[:, 0]
     if C.shape[0] != Bt:
         C = C.expand(Bt, *C.shape[1:])
-        C0 = C0.expand(Bt, k, k)
-    pivs = []
+    C0 = C[:, 0]
+    # H is a fresh tensor at every step, so the gains and value matrices are kept as views of it
+    Ks, Vs, Huus, pivs = [], [V], [], []
     for t in range(T - 1, -1, -1):
         Ft = (F[0, t] if shared_F else F[:, t]) if tvF else F0
         Ct = C[:, t] if tvC else C0
-        G = torch.matmul(V, Ft)  # (Bt, n+1, k)
         if shared_F:
-            H = torch.matmul(Ft.mT, G).add_(Ct)
+            H = torch.matmul(torch.matmul(V, Ft).mT, Ft).mT.add_(Ct)
         else:
-            H = torch.baddbmm(Ct, Ft.mT, G)
+            H = torch.baddbmm(Ct, Ft.mT, torch.bmm(V, Ft))
         if keep_huu:
-            Huus[:, t] = H[:, :m, :m]
+            Huus.append(H[:, :m, :m].clone())
         for i in range(m):
             inv = torch.reciprocal(H[:, i:i + 1, i:i + 1])
             pivs.append(inv)
             r = H[:, i:i + 1, :] * inv
             H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
         V = H[:, m:, m:]
-        Ks[:, t] = H[:, :m, m:]
-        Vs[:, t] = V
+        Ks.append(H[:, :m, m:])
+        Vs.append(V)
+    Ks.reverse()
+    Vs.reverse()
     piv = torch.stack(pivs, 1).reshape(Bt, T, m).flip(1)
     ok = (piv > 0).all(-1) & torch.isfinite(piv).all(-1)
-    return RiccatiFactors(Kt=Ks.neg_(), Huu=Huus, V=Vs, ok=ok)
+    Kt = torch.stack(Ks, 1).neg_()
+    Vst = torch.stack(Vs, 1) if keep_huu else torch.stack([Vs[0], Vs[-1].expand(Bt, n1, n1)], 1)
+    Huu = torch.stack(Huus[::-1], 1) if keep_huu else None
+    return RiccatiFactors(Kt=Kt, Huu=Huu, V=Vst, ok=ok)
 
 
 def closed_loop(F: torch.Tensor, Kt: torch.Tensor, m: int) -> torch.Tensor:

@@ -1,0 +1,256 @@
+"""``liecontrol bench lqr``: batched LQR, ours vs pypose and mpc.pytorch, measured in the same run.
+
+The problem (same numbers for every solver) is written in the τ = [x; u] convention of both anchors::
+
+    min Σ_{t<T} ½ τ_tᵀ C_t τ_t + p_tᵀ τ_t   s.t.  x_{t+1} = A x_t + B u_t + c,  x_0 given
+
+with per-element random ``A, B, c`` (time-invariant, ``A`` scaled to spectral norm ≤ 0.98 so float32 stays
+accurate over the horizon), SPD ``C_t`` with cross terms, and ``p_t``.  In this
+package's conventions (:mod:`controllers.problem`) that is ``Q_t = ½ C_xx``, ``R_t = ½ C_uu``,
+``N_t = ½ C_xu``, ``q_t = ½ p_x``, ``r_t = ½ p_u`` over ``T`` controls and ``T+1`` states with a zero
+terminal cost (the anchors' last control sees no further state): the optimal controls coincide.
+
+pypose (``pypose.module.LQR``) runs in this process; mpc.pytorch (``mpc.mpc.MPC`` with one LQR
+iteration and no bounds) needs numpy < 2 and runs in ``.venv-mpc`` through ``_mpc_anchor.py`` (the
+problem travels as an ``.npz`` file).  A failing anchor is reported with its error string as result.
+Each solver is timed as the median of ``--repeats`` runs after warm-up (problem objects are built once,
+outside the timed region, for every solver).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from liecontrol.bench._common import print_table, time_ms, write_json
+
+__all__ = ["add_arguments", "run", "make_problem", "run_bench"]
+
+_COLUMNS = ["problem", "B", "T", "n", "m", "dtype", "pass", "ours_ms", "anchor", "anchor_ms", "speedup",
+            "max_abs_diff_u"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--B", type=int, default=256, help="batch size")
+    parser.add_argument("--T", type=int, default=50, help="horizon (number of controls)")
+    parser.add_argument("--n", type=int, default=8, help="state dimension")
+    parser.add_argument("--m", type=int, default=4, help="control dimension")
+    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
+    parser.add_argument("--repeats", type=int, default=7, help="timed runs per solver (median)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch threads for every solver (default 1: robust timings on a shared machine; "
+                             "0 keeps torch's default)")
+    parser.add_argument("--anchors", default="pypose,mpc", help="comma-separated subset of: pypose,mpc")
+    parser.add_argument("--mpc-python", default=None,
+                        help="interpreter with mpc.pytorch (default: .venv-mpc/bin/python of the repo)")
+    parser.add_argument("--json", default=None, help="write the records to this JSON file")
+
+
+def make_problem(B: int, T: int, n: int, m: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """The benchmark problem as float64 numpy arrays (anchor convention, see module docstring)."""
+    g = torch.Generator().manual_seed(seed)
+    k = n + m
+    A = torch.eye(n, dtype=torch.float64)
+    A = A + 0.2 * torch.randn(B, n, n, dtype=torch.float64, generator=g) / n ** 0.5
+    # contractive (spectral norm ≤ 0.98): a well-conditioned problem, so float32 results are comparable
+    A = A * (0.98 / torch.linalg.matrix_norm(A, ord=2).clamp_min(0.98))[:, None, None]
+    Bm = 0.3 * torch.randn(B, n, m, dtype=torch.float64, generator=g)
+    c = 0.1 * torch.randn(B, n, dtype=torch.float64, generator=g)
+    M = torch.randn(B, T, k, k, dtype=torch.float64, generator=g)
+    C = M @ M.mT / k + torch.eye(k, dtype=torch.float64)
+    p = torch.randn(B, T, k, dtype=torch.float64, generator=g)
+    x0 = torch.randn(B, n, dtype=torch.float64, generator=g)
+    return {"A": A.numpy(), "B": Bm.numpy(), "c": c.numpy(), "C": C.numpy(), "p": p.numpy(), "x0": x0.numpy()}
+
+
+# --------------------------------------------------------------------------------------------------
+# ours
+# --------------------------------------------------------------------------------------------------
+
+
+def _ours_inputs(prob: dict[str, np.ndarray], dtype: torch.dtype) -> dict[str, torch.Tensor]:
+    t = {k: torch.from_numpy(v).to(dtype) for k, v in prob.items()}
+    Bsz, n = t["x0"].shape
+    C, p = t["C"], t["p"]
+    zQ = torch.zeros(Bsz, 1, n, n, dtype=dtype)
+    zq = torch.zeros(Bsz, 1, n, dtype=dtype)
+    return {
+        "A": t["A"].unsqueeze(1), "B": t["B"].unsqueeze(1), "c": t["c"].unsqueeze(1),
+        "Q": torch.cat([0.5 * C[..., :n, :n], zQ], 1), "R": (0.5 * C[..., n:, n:]).contiguous(),
+        "N": (0.5 * C[..., :n, n:]).contiguous(), "q": torch.cat([0.5 * p[..., :n], zq], 1),
+        "r": (0.5 * p[..., n:]).contiguous(), "x0": t["x0"],
+    }
+
+
+def _ours_problem(inp: dict[str, torch.Tensor]):
+    from controllers.problem import LinearDynamics, LQProblem, QuadraticCost
+
+    return LQProblem(LinearDynamics(inp["A"], inp["B"], inp["c"]),
+                     QuadraticCost(inp["Q"], inp["R"], N=inp["N"], q=inp["q"], r=inp["r"]), inp["x0"])
+
+
+def _bench_ours(prob, dtype, repeats):
+    from controllers import riccati
+
+    inp = _ours_inputs(prob, dtype)
+    problem = _ours_problem(inp)
+    sol = riccati.solve(problem, grad="none")
+    if not sol.status.all_converged:
+        raise RuntimeError(f"our solver flagged elements: {set(sol.status.reason_names())}")
+    fwd = time_ms(lambda: riccati.solve(problem, grad="none"), repeats=repeats)
+    leaves = {k: v.clone().requires_grad_() for k, v in inp.items()}
+    problem_g = _ours_problem(leaves)
+
+    def fwdbwd():
+        s = riccati.solve(problem_g)
+        (s.u.sum() + s.x.sum()).backward()
+
+    fb = time_ms(fwdbwd, repeats=repeats)
+    # float64 reference for the accuracy column
+    sol64 = riccati.solve(_ours_problem(_ours_inputs(prob, torch.float64)), grad="none")
+    return {"fwd_ms": fwd, "fwdbwd_ms": fb, "u": sol.u.double(), "u64": sol64.u}
+
+
+# --------------------------------------------------------------------------------------------------
+# anchors
+# --------------------------------------------------------------------------------------------------
+
+
+def _err(e: BaseException) -> str:
+    return f"failed: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"[:240]
+
+
+def _bench_pypose(prob, dtype, repeats):
+    out: dict = {}
+    try:
+        import pypose as pp
+    except Exception as e:  # missing anchor
+        return {"error": "missing: " + _err(e)}
+    t = {k: torch.from_numpy(v).to(dtype) for k, v in prob.items()}
+    Bsz, n = t["x0"].shape
+    m = t["B"].shape[-1]
+    T = t["C"].shape[1]
+
+    def build(requires_grad: bool):
+        lv = {k: v.clone().requires_grad_(requires_grad) for k, v in t.items()}
+        lti = pp.module.LTI(lv["A"], lv["B"], torch.eye(n, dtype=dtype).expand(Bsz, n, n),
+                            torch.zeros(Bsz, n, m, dtype=dtype), lv["c"], torch.zeros(Bsz, n, dtype=dtype))
+        return lv, pp.module.LQR(lti, lv["C"], lv["p"], T)
+
+    try:
+        _, lqr = build(False)
+        with torch.no_grad():
+            x, u, _ = lqr(t["x0"])
+        out["u"] = u.detach().double()
+        out["fwd_ms"] = time_ms(lambda: torch.no_grad()(lqr)(t["x0"]), repeats=repeats)
+    except Exception as e:
+        return {"error": _err(e)}
+    try:
+        lv, lqr_g = build(True)
+
+        def fwdbwd():
+            x, u, _ = lqr_g(lv["x0"])
+            (u.sum() + x.sum()).backward()
+
+        out["fwdbwd_ms"] = time_ms(fwdbwd, repeats=repeats)
+    except Exception as e:
+        out["fwdbwd_error"] = _err(e)
+    return out
+
+
+def _default_mpc_python() -> str:
+    root = Path(__file__).resolve().parents[2]
+    return str(root / ".venv-mpc" / "bin" / "python")
+
+
+def _bench_mpc(prob, dtype_name, repeats, threads, python):
+    py = python or _default_mpc_python()
+    if not os.path.exists(py):
+        return {"error": f"missing: no interpreter at {py}"}
+    script = Path(__file__).with_name("_mpc_anchor.py")
+    with tempfile.TemporaryDirectory() as d:
+        pin, pout = os.path.join(d, "problem.npz"), os.path.join(d, "u.npz")
+        np.savez(pin, **prob)
+        cmd = [py, str(script), pin, pout, "--repeats", str(repeats), "--dtype", dtype_name,
+               "--threads", str(threads)]
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=1800)
+        except Exception as e:
+            return {"error": _err(e)}
+        lines = [ln for ln in res.stdout.splitlines() if ln.startswith("{")]
+        if not lines:
+            tail = (res.stderr or res.stdout).strip().splitlines()[-1:] or ["no output"]
+            return {"error": f"failed: exit {res.returncode}: {tail[0][:200]}"}
+        info = json.loads(lines[-1])
+        if "error" in info:
+            return {"error": "failed: " + info["error"]}
+        with np.load(pout, allow_pickle=False) as z:
+            info["u"] = torch.from_numpy(np.array(z["u"]))
+    return info
+
+
+# --------------------------------------------------------------------------------------------------
+# driver
+# --------------------------------------------------------------------------------------------------
+
+
+def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads=1,
+              anchors=("pypose", "mpc"), mpc_python=None) -> list[dict]:
+    """Run the benchmark and return the records (see the module docstring)."""
+    if threads > 0:
+        torch.set_num_threads(threads)
+    dt = getattr(torch, dtype)
+    prob = make_problem(B, T, n, m, seed)
+    ours = _bench_ours(prob, dt, repeats)
+    base = {"problem": "lqr", "B": B, "T": T, "n": n, "m": m, "dtype": dtype}
+    results = {}
+    if "pypose" in anchors:
+        results["pypose"] = _bench_pypose(prob, dt, repeats)
+    if "mpc" in anchors:
+        results["mpc.pytorch"] = _bench_mpc(prob, dtype, repeats, threads, mpc_python)
+    records = []
+    for name, res in results.items():
+        for pas, key, okey in (("fwd", "fwd_ms", "fwd_ms"), ("fwd+bwd", "fwdbwd_ms", "fwdbwd_ms")):
+            rec = dict(base, **{"pass": pas, "ours_ms": ours[okey], "anchor": name})
+            if "error" in res:
+                rec.update(anchor_ms=res["error"], speedup=None, max_abs_diff_u=None)
+            elif key not in res:
+                rec.update(anchor_ms=res.get(key.replace("_ms", "_error"), "failed"), speedup=None,
+                           max_abs_diff_u=float((res["u"] - ours["u"]).abs().max()))
+            else:
+                rec.update(anchor_ms=res[key], speedup=res[key] / ours[okey],
+                           max_abs_diff_u=float((res["u"] - ours["u"]).abs().max()))
+            records.append(rec)
+    # our own float32 error against our float64 solution (context for the anchors' differences)
+    records.append(dict(base, **{"pass": "fwd", "ours_ms": ours["fwd_ms"], "anchor": "ours-float64",
+                                 "anchor_ms": None, "speedup": None,
+                                 "max_abs_diff_u": float((ours["u"] - ours["u64"]).abs().max())}))
+    return records
+
+
+def run(args: argparse.Namespace) -> int:
+    anchors = tuple(a.strip() for a in args.anchors.split(",") if a.strip())
+    records = run_bench(B=args.B, T=args.T, n=args.n, m=args.m, dtype=args.dtype, repeats=args.repeats,
+                        seed=args.seed, threads=args.threads, anchors=anchors, mpc_python=args.mpc_python)
+    print(f"LQR B={args.B} T={args.T} n={args.n} m={args.m} {args.dtype}, torch threads "
+          f"{torch.get_num_threads()}; speedup = anchor_ms / ours_ms (same run)")
+    print_table(records, _COLUMNS)
+    if args.json:
+        write_json(args.json, records)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    p = argparse.ArgumentParser()
+    add_arguments(p)
+    sys.exit(run(p.parse_args()))
