@@ -1,0 +1,158 @@
+"""MPC: receding horizon with warm start, MPCPolicy as a differentiable module with explicit state."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from torch import nn
+
+from controllers.ilqr import ILQROptions
+from controllers.mpc import MPCPolicy, MPCState, run_mpc, shift
+from controllers.problem import QuadraticCost
+from controllers.systems import Pendulum
+
+D64 = torch.float64
+TIGHT = ILQROptions(max_iter=100, tol=1e-12, tol_cost=0.0)
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _policy(T=10, umax=5.0, dtype=D64, system=None, options=TIGHT):
+    return MPCPolicy(system or Pendulum(dt=0.05, damping=0.1), T, torch.tensor([1.0, 0.1], dtype=dtype),
+                     torch.tensor([0.05], dtype=dtype), torch.tensor([math.pi, 0.0], dtype=dtype),
+                     u_lower=-umax, u_upper=umax, options=options)
+
+
+def test_shift():
+    u = torch.arange(6.0).view(1, 3, 2)
+    torch.testing.assert_close(shift(u), torch.tensor([[[2.0, 3.0], [4.0, 5.0], [4.0, 5.0]]]))
+    torch.testing.assert_close(shift(u, "zero")[0, -1], torch.zeros(2))
+    with pytest.raises(ValueError, match="fill"):
+        shift(u, "mean")
+
+
+def test_closed_loop_stabilizes_upright_and_warm_start_saves_iterations():
+    p = Pendulum(dt=0.05, damping=0.1)
+    T = 15
+    Q = torch.diag(torch.tensor([1.0, 0.1], dtype=D64))
+    cost = QuadraticCost(Q=torch.cat([Q.expand(T, 2, 2), 10 * Q[None]]), R=torch.tensor([[0.01]], dtype=D64),
+                         x_ref=torch.tensor([math.pi, 0.0], dtype=D64))
+    x0 = torch.tensor([[math.pi - 0.5, 0.0], [math.pi + 0.3, 0.5]], dtype=D64)
+    warm = run_mpc(p, cost, x0, T, 40, u_lower=-5.0, u_upper=5.0)
+    cold = run_mpc(p, cost, x0, T, 40, u_lower=-5.0, u_upper=5.0, warm_start=False)
+    assert bool(warm.converged.all())
+    assert float((warm.x[:, -1, 0] - math.pi).abs().max()) < 0.05
+    assert float(warm.x[:, -1, 1].abs().max()) < 0.1
+    assert bool((warm.u.abs() <= 5.0 + 1e-12).all())
+    # same closed loop either way (the plans converge to the same optimum), fewer iterations warm
+    torch.testing.assert_close(warm.x, cold.x, atol=1e-6, rtol=0)
+    assert int(warm.iterations.sum()) < int(cold.iterations.sum())
+
+
+def test_policy_state_is_explicit_and_batched_equals_loop():
+    pol = _policy()
+    obs = torch.tensor([[math.pi - 0.3, 0.0], [math.pi + 0.2, -0.4], [math.pi, 0.1]], dtype=D64)
+    before = {k: v.clone() for k, v in pol.state_dict().items()}
+    attrs = set(vars(pol))
+    a, s = pol(obs)
+    assert a.shape == (3, 1) and isinstance(s, MPCState) and s.u.shape == (3, 10, 1)
+    assert set(vars(pol)) == attrs
+    for k, v in pol.state_dict().items():
+        torch.testing.assert_close(v, before[k])
+    a2, _ = pol(obs)  # no hidden warm start: the same call gives the same action
+    torch.testing.assert_close(a2, a)
+    a3, _ = pol(obs, s)  # warm-started from the returned (shifted) plan: same optimum
+    torch.testing.assert_close(a3, a, atol=1e-8, rtol=0)
+    for b in range(3):
+        ab, _ = pol(obs[b:b + 1])
+        torch.testing.assert_close(ab, a[b:b + 1], atol=1e-10, rtol=0)
+
+
+def test_policy_gradients_match_finite_differences():
+    pol = _policy(umax=50.0)
+    obs = torch.tensor([[math.pi - 0.3, 0.2], [math.pi + 0.2, -0.4]], dtype=D64)
+    a, s = pol(obs)
+    assert bool(s.converged.all())
+    w = torch.tensor([[1.0], [-0.5]], dtype=D64)
+    loss = (a * w).sum()
+    params = dict(pol.named_parameters())
+    grads = torch.autograd.grad(loss, list(params.values()))
+    h = 1e-6
+    for (name, p), g in zip(params.items(), grads):
+        for i in range(p.numel()):
+            with torch.no_grad():
+                p.view(-1)[i] += h
+                lp = float((pol(obs)[0] * w).sum())
+                p.view(-1)[i] -= 2 * h
+                lm = float((pol(obs)[0] * w).sum())
+                p.view(-1)[i] += h
+            fd = (lp - lm) / (2 * h)
+            gi = float(g.view(-1)[i])
+            assert abs(gi - fd) < 1e-5 * max(1.0, abs(fd)), (name, i, gi, fd)
+
+
+def test_dynamics_parameter_is_registered_and_differentiable():
+    length = nn.Parameter(torch.tensor(1.0, dtype=D64))
+    pol = _policy(system=Pendulum(length=length, dt=0.05, damping=0.1), umax=50.0)
+    assert any(p is length for p in pol.parameters())
+    a, _ = pol(torch.tensor([[math.pi - 0.3, 0.2]], dtype=D64))
+    a.sum().backward()
+    assert length.grad is not None and float(length.grad.abs()) > 0
+
+
+def test_as_action_head_of_a_network_trains():
+    # an encoder maps a raw observation [cos θ, sin θ, ω] to the state the MPC head plans from; encoder and
+    # MPC parameters are trained together to imitate a teacher MPC with another target
+    torch.manual_seed(0)
+    opts = ILQROptions(max_iter=50)
+    teacher = MPCPolicy(Pendulum(dt=0.05, damping=0.1), 8, torch.tensor([1.0, 0.1], dtype=D64),
+                        torch.tensor([0.05], dtype=D64), torch.tensor([2.5, 0.0], dtype=D64), options=opts)
+    student = _policy(T=8, umax=50.0, options=opts)
+    enc = nn.Linear(3, 2).double()
+    model = nn.ModuleDict({"enc": enc, "mpc": student})
+    th = torch.linspace(1.5, 3.5, 12, dtype=D64)
+    om = torch.linspace(-0.5, 0.5, 12, dtype=D64)
+    x = torch.stack([th, om], -1)
+    raw = torch.stack([torch.cos(th), torch.sin(th), om], -1)
+    with torch.no_grad():
+        target_a, _ = teacher(x)
+        enc.weight.copy_(torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], dtype=D64))
+        enc.bias.copy_(torch.tensor([math.pi, 0.0], dtype=D64))
+
+    def loss_fn():
+        a, _ = student(enc(raw))
+        return ((a - target_a) ** 2).mean()
+
+    opt = torch.optim.Adam(model.parameters(), lr=0.05)
+    first = float(loss_fn().detach())
+    for _ in range(15):
+        opt.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        assert enc.weight.grad is not None and student.target.grad is not None
+        opt.step()
+    assert float(loss_fn().detach()) < 0.5 * first
+
+
+def test_dtype_device_and_bad_input():
+    pol = _policy(dtype=torch.float32, options=None)
+    a, _ = pol(torch.tensor([[math.pi - 0.3, 0.0]]))
+    assert a.dtype == torch.float32
+    pol64 = pol.to(D64)
+    assert pol64.q_raw.dtype == D64 and pol64.u_lower.dtype == D64
+    with pytest.raises(TypeError, match="dtype"):
+        pol64(torch.zeros(1, 2))
+    with pytest.raises(ValueError, match=r"obs must have shape \(B, 2\)"):
+        pol64(torch.zeros(1, 3, dtype=D64))
+    with pytest.raises(ValueError, match="positive"):
+        MPCPolicy(Pendulum(), 5, torch.tensor([1.0, -1.0]), torch.tensor([1.0]), torch.zeros(2))
+    st = pol64.initial_state(4)
+    assert st.u.shape == (4, 10, 1)
