@@ -1,0 +1,233 @@
+"""``liecontrol bench ilqr``: pendulum and cart-pole swing-up, our control-limited iLQR vs mpc.pytorch's
+box-DDP MPC and pypose's MPC, measured in the same run.
+
+Both sides solve the same problem: the dynamics of :mod:`controllers.systems` (re-implemented in plain torch
+in the anchor script, which runs in the separate mpc.pytorch environment), the same quadratic cost, the same
+control limits and the same initial states (passed through an ``.npz``).  Each side's controls are rolled out
+through *our* model and scored with *our* cost, so the costs compare like for like.  Threads are pinned to
+the same number on both sides (``--threads``, default 1: on a shared CPU tiny batched kernels are much
+faster single-threaded).  The dynamics-parameter gradient (pendulum length) is checked against central
+finite differences and printed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from liecontrol.bench._common import print_table, time_ms, write_json
+
+__all__ = ["add_arguments", "run", "PROBLEMS"]
+
+PROBLEMS: dict[str, dict] = {
+    "pendulum": dict(n=2, dt=0.05, umax=3.0, Qd=[1.0, 0.1], QTd=[100.0, 10.0], R=0.01, target=[math.pi, 0.0],
+                     params=[1.0, 1.0, 0.1, 9.81], x0_scale=[0.5, 0.5]),
+    "cartpole": dict(n=4, dt=0.05, umax=10.0, Qd=[1.0, 1.0, 0.1, 0.1], QTd=[100.0, 100.0, 10.0, 10.0],
+                     R=0.01, target=[0.0, math.pi, 0.0, 0.0], params=[1.0, 0.3, 0.5, 9.81],
+                     x0_scale=[0.5, 0.3, 0.3, 0.3]),
+}
+
+COLUMNS = ["problem", "B", "T", "n", "m", "dtype", "pass", "ours_ms", "anchor", "anchor_ms", "speedup",
+           "max_abs_diff_u", "ours_cost", "anchor_cost", "converged"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--batch", type=int, default=64, help="batch size B (default 64)")
+    parser.add_argument("--horizon", type=int, default=100, help="horizon T (default 100)")
+    parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
+    parser.add_argument("--max-iter", type=int, default=100, help="iLQR iterations at most, both sides")
+    parser.add_argument("--repeats", type=int, default=3, help="timed runs of our solver (median)")
+    parser.add_argument("--anchor-repeats", type=int, default=1, help="timed runs of each anchor (median)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads on both sides (default 1)")
+    parser.add_argument("--grad-batch", type=int, default=4, help="batch of the gradient check (float64)")
+    parser.add_argument("--no-anchor", action="store_true", help="skip the anchors")
+    parser.add_argument("--anchor-python", default=None,
+                        help="python of the mpc.pytorch environment (default: <repo>/.venv-mpc/bin/python)")
+    parser.add_argument("--json", default=None, metavar="PATH", help="write the records as JSON")
+    parser.add_argument("--seed", type=int, default=0)
+
+
+def _x0(name: str, B: int, seed: int) -> np.ndarray:
+    """Initial states near the hanging equilibrium, uniform in ``±x0_scale`` (float32)."""
+    rng = np.random.default_rng(seed)
+    s = np.asarray(PROBLEMS[name]["x0_scale"])
+    return (rng.uniform(-1.0, 1.0, size=(B, len(s))) * s).astype(np.float32)
+
+
+def _system(name: str, dtype: torch.dtype, length: torch.Tensor | float | None = None):
+    from controllers.systems import CartPole, Pendulum
+
+    p = PROBLEMS[name]["params"]
+    dt = PROBLEMS[name]["dt"]
+    if name == "pendulum":
+        return Pendulum(mass=p[0], length=p[1] if length is None else length, damping=p[2], gravity=p[3],
+                        dt=dt)
+    return CartPole(cart_mass=p[0], pole_mass=p[1], length=p[2] if length is None else length, gravity=p[3],
+                    dt=dt)
+
+
+def _problem(name: str, x0: torch.Tensor, T: int, length=None):
+    from controllers.ilqr import ILQRProblem
+    from controllers.problem import QuadraticCost
+
+    spec = PROBLEMS[name]
+    dt = x0.dtype
+    Qd = torch.diag(torch.tensor(spec["Qd"], dtype=dt))
+    QT = torch.diag(torch.tensor(spec["QTd"], dtype=dt))
+    cost = QuadraticCost(Q=torch.cat([Qd.expand(T, *Qd.shape), QT[None]]),
+                         R=torch.tensor([[spec["R"]]], dtype=dt),
+                         x_ref=torch.tensor(spec["target"], dtype=dt))
+    return ILQRProblem(_system(name, dt, length), cost, x0, T, u_lower=-spec["umax"], u_upper=spec["umax"])
+
+
+def _anchor_python(args) -> Path | None:
+    if args.anchor_python:
+        p = Path(args.anchor_python)
+    else:
+        p = Path(__file__).resolve().parents[2] / ".venv-mpc" / "bin" / "python"
+    return p if p.exists() else None
+
+
+def _run_anchor(py: Path, name: str, x0: np.ndarray, T: int, args) -> dict:
+    spec = PROBLEMS[name]
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / "problem.npz"
+        np.savez(f, problem=np.array(name), x0=x0, T=np.array(T), dt=np.array(spec["dt"]),
+                 umax=np.array(spec["umax"]), Qd=np.array(spec["Qd"]), QTd=np.array(spec["QTd"]),
+                 R=np.array(spec["R"]), target=np.array(spec["target"]), params=np.array(spec["params"]),
+                 lqr_iter=np.array(args.max_iter), eps=np.array(1e-4))
+        script = Path(__file__).with_name("_mpc_ilqr_anchor.py")
+        cmd = [str(py), str(script), str(f), "--threads", str(args.threads), "--repeats",
+               str(args.anchor_repeats)]
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
+        except subprocess.TimeoutExpired:
+            return {k: {"ok": False, "error": "timeout"} for k in ("mpc_pytorch", "pypose")}
+    if res.returncode != 0 or not res.stdout.strip():
+        err = (res.stderr.strip().splitlines() or ["no output"])[-1][:300]
+        return {"mpc_pytorch": {"ok": False, "error": err}, "pypose": {"ok": False, "error": err}}
+    return json.loads(res.stdout)
+
+
+def _score(prob, u: torch.Tensor) -> torch.Tensor:
+    """Cost ``(B,)`` of open-loop controls rolled out through our model, clipped to the limits."""
+    from controllers.problem import rollout
+
+    lo, hi = prob.bounds()
+    u = torch.minimum(torch.maximum(u, lo), hi)
+    x = rollout(prob.dynamics, prob.x0, u)
+    return prob.cost.evaluate(x, u)
+
+
+def _grad_check(name: str, B: int, T: int, seed: int, max_iter: int) -> dict:
+    """d(Σ cost)/d(length) by the implicit gradient and by central finite differences (float64)."""
+    from controllers.ilqr import ILQROptions, ilqr
+
+    opts = ILQROptions(max_iter=max(max_iter, 200), tol=1e-11, tol_cost=0.0)
+    x0 = torch.as_tensor(_x0(name, B, seed), dtype=torch.float64)
+    L0 = float(PROBLEMS[name]["params"][1 if name == "pendulum" else 2])
+    L = torch.tensor(L0, dtype=torch.float64, requires_grad=True)
+    sol = ilqr(_problem(name, x0, T, L), options=opts)
+    w = torch.linspace(-1.0, 1.0, T, dtype=torch.float64).view(1, T, 1)
+    loss = sol.cost.sum() + (sol.u * w).sum()
+    (g,) = torch.autograd.grad(loss, L)
+    h = 1e-5 * max(1.0, L0)
+    vals = []
+    for Lv in (L0 + h, L0 - h):
+        s = ilqr(_problem(name, x0, T, torch.tensor(Lv, dtype=torch.float64)), grad="none", options=opts)
+        vals.append(float(s.cost.sum() + (s.u * w).sum()))
+    fd = (vals[0] - vals[1]) / (2 * h)
+    rel = abs(float(g) - fd) / max(1e-12, abs(fd))
+    return {"problem": f"{name}: d(loss)/d(length)", "B": B, "T": T, "dtype": "float64",
+            "grad_implicit": float(g), "grad_fd": fd, "rel_err": rel,
+            "converged": int(sol.status.converged.sum()), "clamped": int(sol.clamped.sum())}
+
+
+def run(args) -> int:
+    from controllers.ilqr import ILQROptions, ilqr
+
+    torch.set_num_threads(args.threads)
+    B, T = args.batch, args.horizon
+    py = None if args.no_anchor else _anchor_python(args)
+    opts = ILQROptions(max_iter=args.max_iter)
+    records: list[dict] = []
+    for name in args.problems:
+        x0_np = _x0(name, B, args.seed)
+        x0 = torch.as_tensor(x0_np)
+        prob = _problem(name, x0, T)
+        n, m = prob.n, prob.m
+        sol = ilqr(prob, grad="none", options=opts)
+        ours_ms = time_ms(lambda prob=prob: ilqr(prob, grad="none", options=opts), repeats=args.repeats,
+                          warmup=1)
+        ours_cost = float(sol.cost.mean())
+        base = {"problem": f"{name} swing-up", "B": B, "T": T, "n": n, "m": m, "dtype": "float32",
+                "pass": "fwd",
+                "ours_ms": ours_ms, "ours_cost": ours_cost,
+                "converged": f"{int(sol.status.converged.sum())}/{B}"}
+        if args.no_anchor:
+            records.append({**base, "anchor": "skipped", "anchor_ms": None, "speedup": None,
+                            "max_abs_diff_u": None, "anchor_cost": None})
+        elif py is None:
+            records.append({**base, "anchor": "missing (.venv-mpc)", "anchor_ms": None, "speedup": None,
+                            "max_abs_diff_u": None, "anchor_cost": None})
+        else:
+            out = _run_anchor(py, name, x0_np, T, args)
+            for key, label in (("mpc_pytorch", "mpc.pytorch box-DDP"), ("pypose", "pypose MPC")):
+                r = out.get(key, {"ok": False, "error": "not run"})
+                if not r.get("ok"):
+                    records.append({**base, "anchor": f"{label}: FAILED", "anchor_error": r.get("error"),
+                                    "anchor_ms": None, "speedup": None, "max_abs_diff_u": None,
+                                    "anchor_cost": None})
+                    continue
+                ua = torch.tensor(r["u"], dtype=torch.float32).reshape(B, T, m)
+                acost = float(_score(prob, ua).mean())
+                rec = {**base, "anchor": label, "anchor_ms": r["ms"], "speedup": r["ms"] / ours_ms,
+                       "max_abs_diff_u": float((ua - sol.u).abs().max()), "anchor_cost": acost}
+                if r.get("note"):
+                    rec["anchor_note"] = r["note"]
+                records.append(rec)
+    # forward + backward (implicit gradient w.r.t. the pendulum length) at the target size
+    if "pendulum" in args.problems:
+        x0 = torch.as_tensor(_x0("pendulum", B, args.seed))
+
+        def fwd_bwd():
+            L = torch.tensor(PROBLEMS["pendulum"]["params"][1], requires_grad=True)
+            s = ilqr(_problem("pendulum", x0, T, L), options=opts)
+            torch.autograd.grad(s.cost.sum(), L)
+
+        records.append({"problem": "pendulum swing-up, d cost/d length", "B": B, "T": T, "n": 2, "m": 1,
+                        "dtype": "float32", "pass": "fwd+bwd",
+                        "ours_ms": time_ms(fwd_bwd, repeats=args.repeats, warmup=1), "anchor": "-",
+                        "anchor_ms": None, "speedup": None, "max_abs_diff_u": None, "ours_cost": None,
+                        "anchor_cost": None})
+    print_table(records, COLUMNS)
+    grads = []
+    for name in args.problems:
+        grads.append(_grad_check(name, args.grad_batch, T, args.seed, args.max_iter))
+    print()
+    print("gradient w.r.t. a dynamics parameter (pole/pendulum length), implicit vs central finite "
+          "differences:")
+    print_table(grads, ["problem", "B", "T", "dtype", "grad_implicit", "grad_fd", "rel_err", "converged",
+                        "clamped"])
+    for r in records:
+        if r.get("anchor_note"):
+            print(f"note [{r['problem']} / {r['anchor']}]: {r['anchor_note']}")
+        if r.get("anchor_error"):
+            print(f"error [{r['problem']} / {r['anchor']}]: {r['anchor_error']}")
+    if args.json:
+        write_json(args.json, records + grads)
+    return 0
+
+
+if __name__ == "__main__":  # pragma: no cover
+    ap = argparse.ArgumentParser()
+    add_arguments(ap)
+    sys.exit(run(ap.parse_args()))
