@@ -15,7 +15,10 @@ __all__ = [
     "broadcast_leading",
     "small_angle_eps",
     "taylor_eps",
-    "interp_param",
+    "scalar_param",
+    "batch_shape",
+    "float_dtype",
+    "rng_device",
 ]
 
 
@@ -84,17 +87,41 @@ def taylor_eps(dtype: torch.dtype) -> float:
     return torch.finfo(dtype).eps
 
 
-def interp_param(t, like: torch.Tensor, fn: str) -> torch.Tensor:
-    """An interpolation parameter as a tensor of ``like``'s dtype and device.
+def scalar_param(t, like: torch.Tensor, fn: str, name: str = "t", like_name: str = "X") -> torch.Tensor:
+    """A per-batch-element parameter (interpolation time, angle): a Python number, converted to
+    ``like``'s dtype and device, or a floating tensor of shape ``(*B,)`` with ``like``'s dtype and
+    device (nothing is cast or moved silently)."""
+    if isinstance(t, (int, float)) and not isinstance(t, bool):
+        return torch.tensor(float(t), dtype=like.dtype, device=like.device)
+    if not isinstance(t, torch.Tensor):
+        raise TypeError(f"{fn}: argument '{name}' must be a float or a tensor of shape (*B,), "
+                        f"got {type(t).__name__}")
+    if not t.dtype.is_floating_point:
+        raise TypeError(f"{fn}: argument '{name}' must have a floating dtype, got {t.dtype}")
+    check_same_device(fn, **{like_name: like, name: t})
+    return t
 
-    A Python number is converted; a tensor must already have the right dtype (nothing is cast
-    silently) and is broadcast against the batch.
-    """
-    if isinstance(t, torch.Tensor):
-        if t.dtype != like.dtype:
-            raise TypeError(f"{fn}: argument 't' has dtype {t.dtype} but the poses are {like.dtype}; "
-                            "cast it explicitly")
-        if t.device != like.device:
-            raise ValueError(f"{fn}: argument 't' is on {t.device} but the poses are on {like.device}")
-        return t
-    return torch.as_tensor(float(t), dtype=like.dtype, device=like.device)
+
+def batch_shape(batch: tuple, fn: str) -> tuple[int, ...]:
+    """``identity(2, 3)`` and ``identity((2, 3))`` both mean batch shape ``(2, 3)``."""
+    if len(batch) == 1 and isinstance(batch[0], (tuple, list, torch.Size)):
+        batch = tuple(batch[0])
+    for b in batch:
+        if isinstance(b, bool) or not isinstance(b, int) or b < 0:
+            raise TypeError(f"{fn}: batch sizes must be non-negative ints, got {batch!r}")
+    return tuple(batch)
+
+
+def float_dtype(dtype: torch.dtype | None, fn: str) -> torch.dtype:
+    """``dtype`` or torch's default, checked to be floating."""
+    dtype = torch.get_default_dtype() if dtype is None else dtype
+    if not dtype.is_floating_point:
+        raise TypeError(f"{fn}: dtype must be a floating dtype (float32 or float64), got {dtype}")
+    return dtype
+
+
+def rng_device(generator: torch.Generator | None, device) -> torch.device | str | None:
+    """Where to sample: ``device`` if given, else where the generator lives."""
+    if device is None and generator is not None:
+        return generator.device
+    return device

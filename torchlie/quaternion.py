@@ -20,7 +20,14 @@ import math
 
 import torch
 
-from torchlie._batch import broadcast_leading, check_same_device, check_tensor
+from torchlie._batch import (
+    batch_shape,
+    broadcast_leading,
+    check_same_device,
+    check_tensor,
+    float_dtype,
+    scalar_param,
+)
 
 __all__ = [
     "identity",
@@ -61,35 +68,6 @@ def _tau(dtype: torch.dtype) -> float:
     return 0.05 if dtype == torch.float64 else 0.3 if dtype == torch.float32 else 0.5
 
 
-def _batch_shape(batch: tuple, fn: str) -> tuple[int, ...]:
-    if len(batch) == 1 and isinstance(batch[0], (tuple, list, torch.Size)):
-        batch = tuple(batch[0])
-    for b in batch:
-        if isinstance(b, bool) or not isinstance(b, int) or b < 0:
-            raise TypeError(f"{fn}: batch sizes must be non-negative ints, got {batch!r}")
-    return tuple(batch)
-
-
-def _float_dtype(dtype: torch.dtype | None, fn: str) -> torch.dtype:
-    dtype = torch.get_default_dtype() if dtype is None else dtype
-    if not dtype.is_floating_point:
-        raise TypeError(f"{fn}: dtype must be a floating dtype (float32 or float64), got {dtype}")
-    return dtype
-
-
-def _scalar_arg(t, like: torch.Tensor, like_name: str, name: str, fn: str) -> torch.Tensor:
-    """A Python number or a floating tensor of shape ``(*B,)`` (one value per batch element)."""
-    if isinstance(t, (int, float)) and not isinstance(t, bool):
-        return torch.tensor(float(t), dtype=like.dtype, device=like.device)
-    if not isinstance(t, torch.Tensor):
-        raise TypeError(f"{fn}: argument '{name}' must be a float or a tensor of shape (*B,), "
-                        f"got {type(t).__name__}")
-    if not t.dtype.is_floating_point:
-        raise TypeError(f"{fn}: argument '{name}' must have a floating dtype, got {t.dtype}")
-    check_same_device(fn, **{like_name: like, name: t})
-    return t
-
-
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     a0, a1, a2 = a.unbind(-1)
     b0, b1, b2 = b.unbind(-1)
@@ -98,8 +76,8 @@ def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def identity(*batch: int, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
     """Identity quaternion ``(w, x, y, z) = (1, 0, 0, 0)`` of shape ``(*batch, 4)``."""
-    shape = _batch_shape(batch, "quaternion.identity")
-    dtype = _float_dtype(dtype, "quaternion.identity")
+    shape = batch_shape(batch, "quaternion.identity")
+    dtype = float_dtype(dtype, "quaternion.identity")
     q = torch.zeros(*shape, 4, dtype=dtype, device=device)
     q[..., 0] = 1
     return q
@@ -113,8 +91,8 @@ def random(*batch: int, generator: torch.Generator | None = None, dtype: torch.d
     uniforms from ``generator``; no sign canonicalisation (``w`` takes both signs). Samples are made on
     ``device``, or on the generator's device when ``device`` is not given.
     """
-    shape = _batch_shape(batch, "quaternion.random")
-    dtype = _float_dtype(dtype, "quaternion.random")
+    shape = batch_shape(batch, "quaternion.random")
+    dtype = float_dtype(dtype, "quaternion.random")
     if device is None and generator is not None:
         device = generator.device
     u = torch.rand(*shape, 3, generator=generator, dtype=dtype, device=device)
@@ -277,7 +255,7 @@ def slerp(p: torch.Tensor, q: torch.Tensor, t) -> torch.Tensor:
     p = check_tensor(p, (4,), "p", "quaternion.slerp")
     q = check_tensor(q, (4,), "q", "quaternion.slerp")
     check_same_device("quaternion.slerp", p=p, q=q)
-    t = _scalar_arg(t, p, "p", "t", "quaternion.slerp")
+    t = scalar_param(t, p, "quaternion.slerp", "t", "p")
     d = log(multiply(conjugate(p), q))
     return multiply(p, exp(d * t.unsqueeze(-1)))
 
@@ -289,7 +267,7 @@ def from_axis_angle(axis: torch.Tensor, angle) -> torch.Tensor:
     ``(*B,)`` in radians, broadcasting with the batch dims of ``axis``.
     """
     axis = check_tensor(axis, (3,), "axis", "quaternion.from_axis_angle")
-    angle = _scalar_arg(angle, axis, "axis", "angle", "quaternion.from_axis_angle")
+    angle = scalar_param(angle, axis, "quaternion.from_axis_angle", "angle", "axis")
     u = axis / torch.sqrt((axis * axis).sum(-1, keepdim=True))
     half = 0.5 * angle.unsqueeze(-1)
     u, half = broadcast_leading(u, 1, half, 1, "quaternion.from_axis_angle", ("axis", "angle"))

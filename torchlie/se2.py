@@ -27,7 +27,15 @@ import math
 import torch
 
 from torchlie import so2
-from torchlie._batch import broadcast_leading, check_same_device, check_tensor
+from torchlie._batch import (
+    batch_shape,
+    broadcast_leading,
+    check_same_device,
+    check_tensor,
+    float_dtype,
+    rng_device,
+    scalar_param,
+)
 
 __all__ = [
     "exp",
@@ -218,8 +226,8 @@ def right_jacobian_inv(x: torch.Tensor) -> torch.Tensor:
 
 def identity(*batch: int, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
     """Identity motion of shape ``(*batch, 3, 3)`` (``identity(2, 3)`` or ``identity((2, 3))``)."""
-    shape = so2._batch_shape(batch, "se2.identity")
-    dtype = so2._float_dtype(dtype, "se2.identity")
+    shape = batch_shape(batch, "se2.identity")
+    dtype = float_dtype(dtype, "se2.identity")
     return torch.eye(3, dtype=dtype, device=device).expand(*shape, 3, 3).clone()
 
 
@@ -231,9 +239,9 @@ def random(*batch: int, generator: torch.Generator | None = None, dtype: torch.d
     ``N(0, I₂)``, since SE(2) has no uniform distribution. Samples are made on ``device``, or on the
     generator's device when ``device`` is not given.
     """
-    shape = so2._batch_shape(batch, "se2.random")
-    dtype = so2._float_dtype(dtype, "se2.random")
-    device = so2._rng_device(generator, device)
+    shape = batch_shape(batch, "se2.random")
+    dtype = float_dtype(dtype, "se2.random")
+    device = rng_device(generator, device)
     u = torch.rand(*shape, generator=generator, dtype=dtype, device=device)
     t = torch.randn(*shape, 2, generator=generator, dtype=dtype, device=device)
     th = (2 * u - 1) * math.pi
@@ -251,6 +259,6 @@ def interpolate(X: torch.Tensor, Y: torch.Tensor, t) -> torch.Tensor:
     X = check_tensor(X, (3, 3), "X", "se2.interpolate")
     Y = check_tensor(Y, (3, 3), "Y", "se2.interpolate")
     check_same_device("se2.interpolate", X=X, Y=Y)
-    t = so2._as_time(t, X, "se2.interpolate")
+    t = scalar_param(t, X, "se2.interpolate")
     d = log(compose(inverse(X), Y))
     return compose(X, exp(d * t.unsqueeze(-1)))

@@ -15,7 +15,15 @@ from __future__ import annotations
 import torch
 
 from torchlie import so3 as _so3
-from torchlie._batch import broadcast_leading, check_same_device, check_tensor, interp_param
+from torchlie._batch import (
+    batch_shape,
+    broadcast_leading,
+    check_same_device,
+    check_tensor,
+    float_dtype,
+    rng_device,
+    scalar_param,
+)
 
 __all__ = [
     "exp",
@@ -254,17 +262,16 @@ def right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
 
 def identity(*batch, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
     """Identity transforms ``(*batch, 4, 4)``."""
-    shape = _so3._batch_shape(batch)
-    return torch.eye(4, dtype=dtype or torch.get_default_dtype(), device=device).expand(*shape, 4, 4).clone()
+    shape = batch_shape(batch, "se3.identity")
+    return torch.eye(4, dtype=float_dtype(dtype, "se3.identity"), device=device).expand(*shape, 4, 4).clone()
 
 
 def random(*batch, generator: torch.Generator | None = None, dtype: torch.dtype | None = None,
            device=None, scale: float = 1.0) -> torch.Tensor:
     """Random transforms ``(*batch, 4, 4)``: Haar-uniform rotation, translation ~ N(0, scale² I)."""
-    shape = _so3._batch_shape(batch)
-    dtype = dtype or torch.get_default_dtype()
-    if generator is not None and device is None:
-        device = generator.device
+    shape = batch_shape(batch, "se3.random")
+    dtype = float_dtype(dtype, "se3.random")
+    device = rng_device(generator, device)
     R = _so3.random(*shape, generator=generator, dtype=dtype, device=device)
     t = scale * torch.randn(*shape, 3, generator=generator, dtype=dtype, device=device)
     return _assemble(R, t)
@@ -277,5 +284,5 @@ def interpolate(X0: torch.Tensor, X1: torch.Tensor, t) -> torch.Tensor:
     check_same_device("se3.interpolate", X0=X0, X1=X1)
     X0, X1 = broadcast_leading(X0, 2, X1, 2, "se3.interpolate", ("X0", "X1"))
     xi = _log(inverse(X0) @ X1)
-    t = interp_param(t, xi, "se3.interpolate")
+    t = scalar_param(t, xi, "se3.interpolate", "t", "X0")
     return X0 @ _exp(xi * t.unsqueeze(-1))

@@ -20,7 +20,15 @@ import math
 
 import torch
 
-from torchlie._batch import broadcast_leading, check_same_device, check_tensor
+from torchlie._batch import (
+    batch_shape,
+    broadcast_leading,
+    check_same_device,
+    check_tensor,
+    float_dtype,
+    rng_device,
+    scalar_param,
+)
 
 __all__ = [
     "exp",
@@ -40,43 +48,6 @@ __all__ = [
     "random",
     "interpolate",
 ]
-
-
-def _batch_shape(batch: tuple, fn: str) -> tuple[int, ...]:
-    """``identity(2, 3)`` and ``identity((2, 3))`` both mean batch shape ``(2, 3)``."""
-    if len(batch) == 1 and isinstance(batch[0], (tuple, list, torch.Size)):
-        batch = tuple(batch[0])
-    for b in batch:
-        if isinstance(b, bool) or not isinstance(b, int) or b < 0:
-            raise TypeError(f"{fn}: batch sizes must be non-negative ints, got {batch!r}")
-    return tuple(batch)
-
-
-def _float_dtype(dtype: torch.dtype | None, fn: str) -> torch.dtype:
-    dtype = torch.get_default_dtype() if dtype is None else dtype
-    if not dtype.is_floating_point:
-        raise TypeError(f"{fn}: dtype must be a floating dtype (float32 or float64), got {dtype}")
-    return dtype
-
-
-def _rng_device(generator: torch.Generator | None, device) -> torch.device | str | None:
-    # Sample where the generator lives unless told otherwise.
-    if device is None and generator is not None:
-        return generator.device
-    return device
-
-
-def _as_time(t, X: torch.Tensor, fn: str) -> torch.Tensor:
-    """Interpolation parameter: a Python number or a floating tensor broadcastable to the batch shape."""
-    if isinstance(t, (int, float)) and not isinstance(t, bool):
-        return torch.tensor(float(t), dtype=X.dtype, device=X.device)
-    if not isinstance(t, torch.Tensor):
-        raise TypeError(f"{fn}: argument 't' must be a float or a tensor of shape (*B,), "
-                        f"got {type(t).__name__}")
-    if not t.dtype.is_floating_point:
-        raise TypeError(f"{fn}: argument 't' must have a floating dtype, got {t.dtype}")
-    check_same_device(fn, X=X, t=t)
-    return t
 
 
 def _principal(theta: torch.Tensor) -> torch.Tensor:
@@ -187,8 +158,8 @@ def right_jacobian_inv(x: torch.Tensor) -> torch.Tensor:
 
 def identity(*batch: int, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
     """Identity rotation of shape ``(*batch, 2, 2)`` (``identity(2, 3)`` or ``identity((2, 3))``)."""
-    shape = _batch_shape(batch, "so2.identity")
-    dtype = _float_dtype(dtype, "so2.identity")
+    shape = batch_shape(batch, "so2.identity")
+    dtype = float_dtype(dtype, "so2.identity")
     return torch.eye(2, dtype=dtype, device=device).expand(*shape, 2, 2).clone()
 
 
@@ -198,9 +169,9 @@ def random(*batch: int, generator: torch.Generator | None = None, dtype: torch.d
 
     The samples are made on ``device``, or on the generator's device when ``device`` is not given.
     """
-    shape = _batch_shape(batch, "so2.random")
-    dtype = _float_dtype(dtype, "so2.random")
-    u = torch.rand(*shape, 1, generator=generator, dtype=dtype, device=_rng_device(generator, device))
+    shape = batch_shape(batch, "so2.random")
+    dtype = float_dtype(dtype, "so2.random")
+    u = torch.rand(*shape, 1, generator=generator, dtype=dtype, device=rng_device(generator, device))
     return exp((2 * u - 1) * math.pi)
 
 
@@ -215,6 +186,6 @@ def interpolate(X: torch.Tensor, Y: torch.Tensor, t) -> torch.Tensor:
     X = check_tensor(X, (2, 2), "X", "so2.interpolate")
     Y = check_tensor(Y, (2, 2), "Y", "so2.interpolate")
     check_same_device("so2.interpolate", X=X, Y=Y)
-    t = _as_time(t, X, "so2.interpolate")
+    t = scalar_param(t, X, "so2.interpolate")
     d = log(compose(inverse(X), Y))
     return compose(X, exp(d * t.unsqueeze(-1)))

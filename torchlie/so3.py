@@ -14,7 +14,15 @@ from __future__ import annotations
 
 import torch
 
-from torchlie._batch import broadcast_leading, check_same_device, check_tensor, interp_param
+from torchlie._batch import (
+    batch_shape,
+    broadcast_leading,
+    check_same_device,
+    check_tensor,
+    float_dtype,
+    rng_device,
+    scalar_param,
+)
 
 __all__ = [
     "exp",
@@ -362,25 +370,18 @@ def right_jacobian_inv(omega: torch.Tensor) -> torch.Tensor:
 # constructors
 # --------------------------------------------------------------------------------------------------
 
-def _batch_shape(batch) -> tuple[int, ...]:
-    if len(batch) == 1 and isinstance(batch[0], (tuple, list, torch.Size)):
-        batch = tuple(batch[0])
-    return tuple(int(b) for b in batch)
-
-
 def identity(*batch, dtype: torch.dtype | None = None, device=None) -> torch.Tensor:
     """Identity rotations of shape ``(*batch, 3, 3)``."""
-    shape = _batch_shape(batch)
-    return torch.eye(3, dtype=dtype or torch.get_default_dtype(), device=device).expand(*shape, 3, 3).clone()
+    shape = batch_shape(batch, "so3.identity")
+    return torch.eye(3, dtype=float_dtype(dtype, "so3.identity"), device=device).expand(*shape, 3, 3).clone()
 
 
 def random(*batch, generator: torch.Generator | None = None, dtype: torch.dtype | None = None,
            device=None) -> torch.Tensor:
     """Uniform (Haar) random rotations ``(*batch, 3, 3)``: normalized Gaussian quaternions."""
-    shape = _batch_shape(batch)
-    dtype = dtype or torch.get_default_dtype()
-    if generator is not None and device is None:
-        device = generator.device
+    shape = batch_shape(batch, "so3.random")
+    dtype = float_dtype(dtype, "so3.random")
+    device = rng_device(generator, device)
     q = torch.randn(*shape, 4, generator=generator, dtype=dtype, device=device)
     # a Gaussian 4-vector of norm 0 has probability 0; guard anyway so no NaN can appear
     q = torch.where(torch.linalg.vector_norm(q, dim=-1, keepdim=True) > 0, q, torch.ones_like(q))
@@ -394,7 +395,7 @@ def interpolate(R0: torch.Tensor, R1: torch.Tensor, t) -> torch.Tensor:
     check_same_device("so3.interpolate", R0=R0, R1=R1)
     R0, R1 = broadcast_leading(R0, 2, R1, 2, "so3.interpolate", ("R0", "R1"))
     w = _log(R0.transpose(-1, -2) @ R1)
-    t = interp_param(t, w, "so3.interpolate")
+    t = scalar_param(t, w, "so3.interpolate", "t", "R0")
     return R0 @ _exp(w * t.unsqueeze(-1))
 
 
