@@ -90,9 +90,9 @@ class LQRFunction(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, A, B, c, Q, R, N, q, r, x0, T, bs):
+    def forward(ctx, A, B, c, Q, R, N, q, r, x0, T, bs, fused=False):
         n, m = A.shape[-1], B.shape[-1]
-        x, u, J, fac, F = _ric._solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, keep_huu=True)
+        x, u, J, fac, F = _ric._solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, keep_huu=True, fused=fused)
         Bt = x.shape[0]
         K = fac.Kt[..., :n]
         k = fac.Kt[..., n]
@@ -124,7 +124,7 @@ class LQRFunction(torch.autograd.Function):
         eu = -du + gJ1 * u
         el = -dlam[:, 1:] + gJ1 * lam[:, 1:]
         needs = ctx.needs_input_grad
-        out = [None] * 11
+        out = [None] * 12
 
         def fit(g: torch.Tensor, idx: int, k: int) -> torch.Tensor:
             shp = ctx.shapes[idx]
@@ -156,6 +156,6 @@ class LQRFunction(torch.autograd.Function):
         return tuple(out)
 
 
-def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size):
-    """Run :class:`LQRFunction`; returns flattened ``(x, u, J, K, k, info)``."""
-    return LQRFunction.apply(A, B, c, Q, R, N, q, r, x0, T, bs)
+def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, fused: bool = False):
+    """Run :class:`LQRFunction`; returns flattened ``(x, u, J, K, k, ok)``."""
+    return LQRFunction.apply(A, B, c, Q, R, N, q, r, x0, T, bs, fused)

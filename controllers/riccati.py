@@ -28,6 +28,7 @@ Entry point: :func:`solve` (an :class:`~controllers.problem.LQProblem` in, an
 from __future__ import annotations
 
 import enum
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -162,15 +163,33 @@ class RiccatiFactors:
     ok: torch.Tensor
 
 
+def _eliminate(H: torch.Tensor, E: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``m`` Gauss-Jordan pivots on ``H (Bt, k, k)``: returns ``(H_uu⁻¹ H_ux̃, Schur complement Ṽ,
+    reciprocal pivots (Bt, m))`` (out of place, so that ``torch.compile`` can fuse it)."""
+    invs = []
+    for i in range(m):
+        inv = torch.reciprocal(H[:, i:i + 1, i:i + 1])
+        invs.append(inv)
+        H = H - (H[:, :, i:i + 1] - E[i]) * (H[:, i:i + 1, :] * inv)
+    return H[:, :m, m:], H[:, m:, m:], torch.cat(invs, -1).reshape(H.shape[0], m)
+
+
+@functools.lru_cache(maxsize=1)
+def _fused_eliminate():
+    """``torch.compile``'d :func:`_eliminate` (built once; compiled per shape/dtype on first use)."""
+    return torch.compile(_eliminate, dynamic=False, fullgraph=True)
+
+
 def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt: int, m: int,
-                  keep_huu: bool = True) -> RiccatiFactors:
+                  keep_huu: bool = True, fused: bool = False) -> RiccatiFactors:
     """Riccati recursion on the augmented state (module docstring); batch ``Bt``, horizon ``T``.
 
     No autograd graph (use :func:`_backward_graph` for that).  ``H_uu⁻¹ H_ux̃`` and the Schur complement
     ``Ṽ_t`` come from ``m`` Gauss-Jordan pivots on ``H`` done as batched elementwise updates: for tiny
     ``m`` this is several times cheaper than per-matrix LAPACK calls, and the pivots of a symmetric
     positive-definite ``H_uu`` are positive, so no pivoting is needed; a non-positive pivot marks the
-    element as failed (``ok``).
+    element as failed (``ok``).  With ``fused=True`` the ``4 m`` elementwise pivot updates of a step run
+    as one ``torch.compile``'d kernel (compiled on first use for each shape and dtype).
     """
     n1 = VT.shape[-1]
     k = C.shape[-1]
@@ -178,11 +197,12 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
     shared_F = F.shape[0] == 1
     tvF, tvC = F.shape[1] > 1, C.shape[1] > 1
     E = torch.eye(k, dtype=dt, device=dev)[:m].unsqueeze(-1)  # unit columns e_i (k, 1)
-    V = VT.expand(Bt, n1, n1)
+    V = VT.expand(Bt, n1, n1).contiguous() if fused else VT.expand(Bt, n1, n1)
     F0 = F[0, 0] if shared_F else F[:, 0]
     if C.shape[0] != Bt:
         C = C.expand(Bt, *C.shape[1:])
     C0 = C[:, 0]
+    elim = _fused_eliminate() if fused else None
     # H is a fresh tensor at every step, so the gains and value matrices are kept as views of it
     Ks, Vs, Huus, pivs = [], [V], [], []
     for t in range(T - 1, -1, -1):
@@ -194,13 +214,18 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
             H = torch.baddbmm(Ct, Ft.mT, torch.bmm(V, Ft))
         if keep_huu:
             Huus.append(H[:, :m, :m].clone())
-        for i in range(m):
-            inv = torch.reciprocal(H[:, i:i + 1, i:i + 1])
+        if fused:
+            S, V, inv = elim(H, E, m)
             pivs.append(inv)
-            r = H[:, i:i + 1, :] * inv
-            H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
-        V = H[:, m:, m:]
-        Ks.append(H[:, :m, m:])
+            Ks.append(S)
+        else:
+            for i in range(m):
+                inv = torch.reciprocal(H[:, i:i + 1, i:i + 1])
+                pivs.append(inv)
+                r = H[:, i:i + 1, :] * inv
+                H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
+            V = H[:, m:, m:]
+            Ks.append(H[:, :m, m:])
         Vs.append(V)
     Ks.reverse()
     Vs.reverse()
@@ -285,7 +310,7 @@ def _backward_graph(F, C, VT, T: int, Bt: int, m: int) -> RiccatiFactors:
 
 
 def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool = False,
-                keep_huu: bool = False):
+                keep_huu: bool = False, fused: bool = False):
     """Solve the canonical LQ problem; returns ``(x, u, J, factors, F)`` flattened to ``(Bt, ...)``.
 
     ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.
@@ -293,7 +318,10 @@ def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool 
     n, m = A.shape[-1], B.shape[-1]
     Bt = max(bs.numel(), 1)
     F, C, VT = assemble(A, B, c, Q, R, N, q, r, T, bs)
-    fac = _backward_graph(F, C, VT, T, Bt, m) if graph else backward_pass(F, C, VT, T, Bt, m, keep_huu)
+    if graph:
+        fac = _backward_graph(F, C, VT, T, Bt, m)
+    else:
+        fac = backward_pass(F, C, VT, T, Bt, m, keep_huu, fused)
     x0f = x0.expand(*bs, n).reshape(Bt, n)
     x0t = torch.cat([x0f, torch.ones(Bt, 1, dtype=x0.dtype, device=x0.device)], -1)
     xt, u = (_forward_graph if graph else _forward)(F, fac.Kt, x0t, T)
@@ -308,7 +336,7 @@ def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool 
 
 def lqr(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, Q: torch.Tensor, R: torch.Tensor,
         N: torch.Tensor | None, q: torch.Tensor | None, r: torch.Tensor | None, x0: torch.Tensor,
-        T: int, grad: GradMode | str = GradMode.IMPLICIT):
+        T: int, grad: GradMode | str = GradMode.IMPLICIT, fused: bool = False):
     """Functional core on canonical tensors (no validation): returns ``x (*B, T+1, n)``,
     ``u (*B, T, m)``, ``K (*B, T, m, n)``, ``k (*B, T, m)``, ``J (*B,)`` and ``ok (*B, T)`` (False
     where ``H_uu`` was not positive definite).
@@ -316,32 +344,40 @@ def lqr(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, Q: torch.Tenso
     Shapes as in :mod:`controllers.problem` with explicit time dims; the cost is
     ``Σ xᵀQx + uᵀRu + 2xᵀNu + 2qᵀx + 2rᵀu`` (no constant).  With ``grad='implicit'`` the gradients of
     ``x``, ``u`` and ``J`` come from :class:`controllers.implicit.LQRFunction`; ``K``, ``k`` are then
-    returned without a graph (use ``grad='unrolled'`` to differentiate the gains).
+    returned without a graph (use ``grad='unrolled'`` to differentiate the gains).  ``fused=True``
+    runs each step's pivot updates as one ``torch.compile``'d kernel (not with ``grad='unrolled'``).
     """
     grad = GradMode(grad)
+    if fused and grad is GradMode.UNROLLED:
+        raise ValueError("lqr: fused=True needs grad='implicit' or 'none' (no graph through the kernel)")
     n, m = A.shape[-1], B.shape[-1]
     tr = [(A, 3), (B, 3), (c, 2), (Q, 3), (R, 3), (N, 3), (q, 2), (r, 2)]
     bs = torch.broadcast_shapes(x0.shape[:-1], *[v.shape[:v.dim() - k] for v, k in tr if v is not None])
     if grad is GradMode.IMPLICIT:
         from controllers.implicit import lqr_implicit
 
-        x, u, J, K, k, info = lqr_implicit(A, B, c, Q, R, N, q, r, x0, T, bs)
+        x, u, J, K, k, info = lqr_implicit(A, B, c, Q, R, N, q, r, x0, T, bs, fused)
     else:
         ctx = torch.enable_grad() if grad is GradMode.UNROLLED else torch.no_grad()
         with ctx:
-            x, u, J, fac, _ = _solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, graph=grad is GradMode.UNROLLED)
+            x, u, J, fac, _ = _solve_core(A, B, c, Q, R, N, q, r, x0, T, bs,
+                                          graph=grad is GradMode.UNROLLED, fused=fused)
         K, k, info = fac.Kt[..., :n], fac.Kt[..., n], fac.ok
     return (x.reshape(*bs, T + 1, n), u.reshape(*bs, T, m), K.reshape(*bs, T, m, n), k.reshape(*bs, T, m),
             J.reshape(bs), info.reshape(*bs, T))
 
 
-def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: bool = True) -> LQSolution:
+def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: bool = True,
+          fused: bool = False) -> LQSolution:
     """Solve a batched LQR/LQT problem with the Riccati recursion.
 
     Args:
         problem: the :class:`LQProblem`.
         grad: :class:`GradMode` — ``"implicit"`` (default), ``"unrolled"`` or ``"none"``.
-        check: compute the per-element input status (non-finite data, Q/R definiteness when batched).
+        check: compute the per-element input status (non-finite data, Q/R definiteness when batched;
+            the cost's part is cached on the cost object).
+        fused: run each Riccati step's pivot updates as one ``torch.compile``'d kernel (compiled on
+            first use per shape/dtype, seconds; then faster).  Needs a working ``torch.compile``.
 
     Returns:
         :class:`LQSolution` with ``x``, ``u``, gains ``K``/``k`` (``u_t = K_t x_t + k_t``), the optimal
@@ -354,7 +390,7 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
     T = problem.T
     d, cost = problem.dynamics, problem.cost
     cc = cost.canonical(T)
-    x, u, K, k, J, info = lqr(d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0, T, grad)
+    x, u, K, k, J, info = lqr(d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0, T, grad, fused)
     J = J + cc.const
     reason = (~info.all(-1)).to(torch.int64) * int(Reason.SINGULAR_QUU)
     if check:

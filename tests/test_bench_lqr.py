@@ -16,7 +16,7 @@ def _check(records, anchors):
     assert {r["anchor"] for r in records} == set(anchors) | {"ours-float64"}
     for r in records:
         assert set(r) == KEYS
-        assert r["problem"] == "lqr" and (r["B"], r["T"], r["n"], r["m"]) == (4, 6, 3, 2)
+        assert r["problem"] in ("lqr", "lqr-fused") and (r["B"], r["T"], r["n"], r["m"]) == (4, 6, 3, 2)
         assert r["ours_ms"] > 0
         if r["anchor"] == "ours-float64" or r["pass"] == "fwd":
             # the anchor's forward ran: same optimal controls (float32 round-off only)
@@ -33,7 +33,7 @@ def test_bench_lqr_pypose_smoke(tmp_path):
     parser = __import__("argparse").ArgumentParser()
     bench.add_arguments(parser)
     args = parser.parse_args(["--B", "4", "--T", "6", "--n", "3", "--m", "2", "--repeats", "1",
-                              "--anchors", "pypose", "--json", str(out)])
+                              "--anchors", "pypose", "--no-fused", "--json", str(out)])
     assert bench.run(args) == 0
     _check(json.loads(out.read_text()), ["pypose"])
 

@@ -14,7 +14,10 @@ pypose (``pypose.module.LQR``) runs in this process; mpc.pytorch (``mpc.mpc.MPC`
 iteration and no bounds) needs numpy < 2 and runs in ``.venv-mpc`` through ``_mpc_anchor.py`` (the
 problem travels as an ``.npz`` file).  A failing anchor is reported with its error string as result.
 Each solver is timed as the median of ``--repeats`` runs after warm-up (problem objects are built once,
-outside the timed region, for every solver).
+outside the timed region, for every solver; our per-element cost checks are cached on the cost object).
+Records with ``problem = "lqr"`` time the default eager solver, ``"lqr-fused"`` the same solver with
+``fused=True`` (each Riccati step's pivot updates as one ``torch.compile``'d kernel; compiled during
+warm-up).  The ``ours-float64`` rows give our float32 controls' distance to our float64 solution.
 """
 
 from __future__ import annotations
@@ -52,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--anchors", default="pypose,mpc", help="comma-separated subset of: pypose,mpc")
     parser.add_argument("--mpc-python", default=None,
                         help="interpreter with mpc.pytorch (default: .venv-mpc/bin/python of the repo)")
+    parser.add_argument("--no-fused", action="store_true",
+                        help="skip the 'lqr-fused' rows (riccati.solve(..., fused=True), torch.compile)")
     parser.add_argument("--json", default=None, help="write the records to this JSON file")
 
 
@@ -98,20 +103,20 @@ def _ours_problem(inp: dict[str, torch.Tensor]):
                      QuadraticCost(inp["Q"], inp["R"], N=inp["N"], q=inp["q"], r=inp["r"]), inp["x0"])
 
 
-def _bench_ours(prob, dtype, repeats):
+def _bench_ours(prob, dtype, repeats, fused=False):
     from controllers import riccati
 
     inp = _ours_inputs(prob, dtype)
     problem = _ours_problem(inp)
-    sol = riccati.solve(problem, grad="none")
+    sol = riccati.solve(problem, grad="none", fused=fused)
     if not sol.status.all_converged:
         raise RuntimeError(f"our solver flagged elements: {set(sol.status.reason_names())}")
-    fwd = time_ms(lambda: riccati.solve(problem, grad="none"), repeats=repeats)
+    fwd = time_ms(lambda: riccati.solve(problem, grad="none", fused=fused), repeats=repeats)
     leaves = {k: v.clone().requires_grad_() for k, v in inp.items()}
     problem_g = _ours_problem(leaves)
 
     def fwdbwd():
-        s = riccati.solve(problem_g)
+        s = riccati.solve(problem_g, fused=fused)
         (s.u.sum() + s.x.sum()).backward()
 
     fb = time_ms(fwdbwd, repeats=repeats)
@@ -204,43 +209,54 @@ def _bench_mpc(prob, dtype_name, repeats, threads, python):
 
 
 def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads=1,
-              anchors=("pypose", "mpc"), mpc_python=None) -> list[dict]:
-    """Run the benchmark and return the records (see the module docstring)."""
+              anchors=("pypose", "mpc"), mpc_python=None, fused=False) -> list[dict]:
+    """Run the benchmark and return the records (see the module docstring).
+
+    With ``fused`` a second set of records (``problem = "lqr-fused"``) times ``riccati.solve(...,
+    fused=True)`` (torch.compile'd pivot kernel) against the same anchor timings.
+    """
     if threads > 0:
         torch.set_num_threads(threads)
     dt = getattr(torch, dtype)
     prob = make_problem(B, T, n, m, seed)
-    ours = _bench_ours(prob, dt, repeats)
-    base = {"problem": "lqr", "B": B, "T": T, "n": n, "m": m, "dtype": dtype}
+    variants = {"lqr": _bench_ours(prob, dt, repeats)}
+    if fused:
+        try:
+            variants["lqr-fused"] = _bench_ours(prob, dt, repeats, fused=True)
+        except Exception as e:  # torch.compile unavailable: say so, keep the eager figures
+            print(f"lqr-fused skipped: {_err(e)}", file=sys.stderr)
     results = {}
     if "pypose" in anchors:
         results["pypose"] = _bench_pypose(prob, dt, repeats)
     if "mpc" in anchors:
         results["mpc.pytorch"] = _bench_mpc(prob, dtype, repeats, threads, mpc_python)
     records = []
-    for name, res in results.items():
-        for pas, key, okey in (("fwd", "fwd_ms", "fwd_ms"), ("fwd+bwd", "fwdbwd_ms", "fwdbwd_ms")):
-            rec = dict(base, **{"pass": pas, "ours_ms": ours[okey], "anchor": name})
-            if "error" in res:
-                rec.update(anchor_ms=res["error"], speedup=None, max_abs_diff_u=None)
-            elif key not in res:
-                rec.update(anchor_ms=res.get(key.replace("_ms", "_error"), "failed"), speedup=None,
-                           max_abs_diff_u=float((res["u"] - ours["u"]).abs().max()))
-            else:
-                rec.update(anchor_ms=res[key], speedup=res[key] / ours[okey],
-                           max_abs_diff_u=float((res["u"] - ours["u"]).abs().max()))
-            records.append(rec)
-    # our own float32 error against our float64 solution (context for the anchors' differences)
-    records.append(dict(base, **{"pass": "fwd", "ours_ms": ours["fwd_ms"], "anchor": "ours-float64",
-                                 "anchor_ms": None, "speedup": None,
-                                 "max_abs_diff_u": float((ours["u"] - ours["u64"]).abs().max())}))
+    for problem_name, ours in variants.items():
+        base = {"problem": problem_name, "B": B, "T": T, "n": n, "m": m, "dtype": dtype}
+        for name, res in results.items():
+            for pas, key in (("fwd", "fwd_ms"), ("fwd+bwd", "fwdbwd_ms")):
+                rec = dict(base, **{"pass": pas, "ours_ms": ours[key], "anchor": name})
+                if "error" in res:
+                    rec.update(anchor_ms=res["error"], speedup=None, max_abs_diff_u=None)
+                elif key not in res:
+                    rec.update(anchor_ms=res.get(key.replace("_ms", "_error"), "failed"), speedup=None,
+                               max_abs_diff_u=float((res["u"] - ours["u"]).abs().max()))
+                else:
+                    rec.update(anchor_ms=res[key], speedup=res[key] / ours[key],
+                               max_abs_diff_u=float((res["u"] - ours["u"]).abs().max()))
+                records.append(rec)
+        # our own float32 error against our float64 solution (context for the anchors' differences)
+        records.append(dict(base, **{"pass": "fwd", "ours_ms": ours["fwd_ms"], "anchor": "ours-float64",
+                                     "anchor_ms": None, "speedup": None,
+                                     "max_abs_diff_u": float((ours["u"] - ours["u64"]).abs().max())}))
     return records
 
 
 def run(args: argparse.Namespace) -> int:
     anchors = tuple(a.strip() for a in args.anchors.split(",") if a.strip())
     records = run_bench(B=args.B, T=args.T, n=args.n, m=args.m, dtype=args.dtype, repeats=args.repeats,
-                        seed=args.seed, threads=args.threads, anchors=anchors, mpc_python=args.mpc_python)
+                        seed=args.seed, threads=args.threads, anchors=anchors, mpc_python=args.mpc_python,
+                        fused=not args.no_fused)
     print(f"LQR B={args.B} T={args.T} n={args.n} m={args.m} {args.dtype}, torch threads "
           f"{torch.get_num_threads()}; speedup = anchor_ms / ours_ms (same run)")
     print_table(records, _COLUMNS)
