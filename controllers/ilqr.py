@@ -400,74 +400,89 @@ def _solve_factor(L: Tensor, b: Tensor) -> Tensor:
 def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) -> _Backward:
     """Riccati recursion on the local model (time-major inputs); ``lo/hi`` are bounds on ``Δu``.
 
-    With ``F_t = [A_t, B_t]`` and the stage Hessian ``H_t`` / gradient ``g_t`` over ``(x, u)`` each step is
-    ``Q = H_t + F_tᵀ V_xx F_t``, ``q = g_t + F_tᵀ v_x`` (Eq. 91); the feedforward solves the box QP on the
-    regularized ``Q_uu + μI`` (Eq. 92 when no limit is active), clamped rows of ``K`` are zero, and with
-    ``M = [I; K]``: ``V_xx = Mᵀ Q M``, ``v_x = Mᵀ (q + Q_{:,u} k)`` (Eq. 93 for the clamped policy).
+    Homogeneous form (the affine terms ride in an extra coordinate, as in seed Eq. 76-78): with
+    ``z̃ = [δx; δu; 1]``, the stage matrix ``H̃_t = [[H_xx, H_xu, g_x], [H_ux, H_uu, g_u], [g_xᵀ, g_uᵀ, 0]]``,
+    ``F̃_t = [[A_t, B_t, 0], [0, 0, 1]]`` and the value ``½ x̃ᵀ Ṽ x̃`` each step is ``Q̃ = H̃_t + F̃_tᵀ Ṽ F̃_t``
+    (Eq. 91); the feedforward solves the box QP on the regularized ``Q_uu + μI`` (Eq. 92 when no limit is
+    active), the rows of ``K`` of clamped controls are zero, and with ``M̃ = [[I, 0], [K, k], [0, 1]]``
+    the value update is ``Ṽ = M̃ᵀ Q̃ M̃`` (Eq. 93 for the clamped policy).
     """
     T, n, m = A.shape[0], A.shape[-1], B.shape[-1]
     dtype, device = A.dtype, A.device
-    # stage quantities over z = (x, u), all steps at once
+    kw = dict(dtype=dtype, device=device)
+    # augmented dynamics and stage matrices for all steps at once
     lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
-    F = torch.cat([A.expand(*lead, n, n), B.expand(*lead, n, m)], -1)
-    hb = torch.broadcast_shapes(Hxx.shape[:-2][1:], Huu.shape[:-2][1:],
-                                *([] if Hux is None else [Hux.shape[:-2][1:]]))
-    hb = (T, *hb)
-    Hxx_t = Hxx[:T].expand(*hb, n, n)
-    Hxu = torch.zeros(*hb, n, m, dtype=dtype, device=device) if Hux is None else Hux.mT.expand(*hb, n, m)
-    Hz = torch.cat([torch.cat([Hxx_t, Hxu], -1), torch.cat([Hxu.mT, Huu.expand(*hb, m, m)], -1)], -2)
-    gz = torch.cat([gx[:T], gu], -1)
-    Vx = gx[T].expand(*bs, n)
-    Vxx = Hxx[T].expand(*bs, n, n)
-    eye_n = torch.eye(n, dtype=dtype, device=device).expand(*bs, n, n)
-    eye_m = torch.eye(m, dtype=dtype, device=device)
+    Ft = torch.cat([A.expand(*lead, n, n), B.expand(*lead, n, m), torch.zeros(*lead, n, 1, **kw)], -1)
+    last = torch.zeros(n + m + 1, **kw)
+    last[-1] = 1.0
+    F = torch.cat([Ft, last.expand(*lead, 1, n + m + 1)], -2)  # (T, *b, n+1, n+m+1)
+    full = (T, *bs)
+    Hxx_t = Hxx[:T].expand(*full, n, n)
+    Hxu = torch.zeros(*full, n, m, **kw) if Hux is None else Hux.mT.expand(*full, n, m)
+    gxt, gut = gx[:T].expand(*full, n), gu.expand(*full, m)
+    H = torch.cat([
+        torch.cat([Hxx_t, Hxu, gxt.unsqueeze(-1)], -1),
+        torch.cat([Hxu.mT, Huu.expand(*full, m, m), gut.unsqueeze(-1)], -1),
+        torch.cat([gxt.unsqueeze(-2), gut.unsqueeze(-2), torch.zeros(*full, 1, 1, **kw)], -1),
+    ], -2)
+    gT = gx[T].expand(*bs, n)
+    V = torch.cat([torch.cat([Hxx[T].expand(*bs, n, n), gT.unsqueeze(-1)], -1),
+                   torch.cat([gT.unsqueeze(-2), torch.zeros(*bs, 1, 1, **kw)], -1)], -2)
+    top = torch.cat([torch.eye(n, **kw), torch.zeros(n, 1, **kw)], -1).expand(*bs, n, n + 1)
+    bot = torch.cat([torch.zeros(1, n, **kw), torch.ones(1, 1, **kw)], -1).expand(*bs, 1, n + 1)
+    eye_m = torch.eye(m, **kw)
     mu_I = mu[..., None, None] * eye_m
-    Ks, ks, frees, goods, d1, d2 = [None] * T, [None] * T, [None] * T, [], [], []
-    scalar = m == 1 and lo is not None
+    one = torch.ones((), **kw)
+    u_sl = slice(n, n + m)
+    Ks, ks, frees, goods, Qus, Quus = [None] * T, [None] * T, [None] * T, [], [None] * T, [None] * T
     for t in range(T - 1, -1, -1):
-        Ft = F[t]
-        FV = Ft.mT @ Vxx
-        Qz = Hz[t] + FV @ Ft
-        qz = gz[t] + (Ft.mT @ Vx.unsqueeze(-1)).squeeze(-1)
-        Quu, Qux, Qu = Qz[..., n:, n:], Qz[..., n:, :n], qz[..., n:]
-        if scalar:
-            # one control: the box QP is a clip, the factor a scalar
-            h = Quu[..., 0] + mu.unsqueeze(-1)  # (*B, 1)
-            good = h[..., 0] > 0
-            h = torch.where(h > 0, h, torch.ones((), dtype=dtype, device=device))
-            kraw = -Qu / h
-            k = torch.clamp(kraw, lo[t], hi[t])
-            free = (kraw >= lo[t]) & (kraw <= hi[t])
-            K = -(free.to(dtype) / h).unsqueeze(-1) * Qux
-        elif lo is None:
-            L, good = _factor(Quu + mu_I)
-            k = -_solve_factor(L, Qu.unsqueeze(-1)).squeeze(-1)
-            K = -_solve_factor(L, Qux)
-            free = torch.ones(*bs, m, dtype=torch.bool, device=device)
+        Fk = F[t]
+        Q = H[t] + Fk.mT @ (V @ Fk)
+        if m == 1:
+            # one control: the box QP is a clip and the factorization a division
+            quu, qu, qux = Q[..., n, n], Q[..., n, -1], Q[..., n, :n]
+            h = quu + mu
+            good = h > 0
+            h = torch.where(good, h, one)
+            kraw = -qu / h
+            if lo is None:
+                k = kraw
+                free = torch.ones_like(good)
+                K = qux * (-1.0 / h).unsqueeze(-1)
+            else:
+                lt, ht = lo[t][..., 0], hi[t][..., 0]
+                k = torch.clamp(kraw, lt, ht)
+                free = (kraw >= lt) & (kraw <= ht)
+                K = qux * (-free.to(dtype) / h).unsqueeze(-1)
+            k, free, K = k.unsqueeze(-1), free.unsqueeze(-1), K.unsqueeze(-2)
+            Quu, Qu = quu.unsqueeze(-1).unsqueeze(-1), qu.unsqueeze(-1)
         else:
-            Qreg = (Quu + mu_I).expand(*bs, m, m)
-            res = box_qp(Qreg, Qu.expand(*bs, m), lo[t], hi[t], x0=None if k_warm is None else k_warm[t],
-                         check=False)
-            free = res.free
-            good = (res.status != int(BoxQPStatus.NOT_POSITIVE_DEFINITE)) & \
-                (res.status != int(BoxQPStatus.NON_FINITE))
-            L, okL = _factor(masked_hessian(Qreg, free))
-            good = good & okL
-            k = torch.where(good.unsqueeze(-1), res.x, torch.zeros((), dtype=dtype, device=device))
-            K = -_solve_factor(L, free.to(dtype).unsqueeze(-1) * Qux.expand(*bs, m, n))
-        M = torch.cat([eye_n, K.expand(*bs, m, n)], -2)  # (*B, n+m, n)
-        Qk = (Qz[..., :, n:] @ k.unsqueeze(-1)).squeeze(-1)
-        Vx = (M.mT @ (qz + Qk).unsqueeze(-1)).squeeze(-1)
-        Vxx = M.mT @ Qz @ M
-        Vxx = 0.5 * (Vxx + Vxx.mT)
-        d1.append((k * Qu).sum(-1))
-        d2.append((k * Qk[..., n:]).sum(-1))
+            Quu, Qu, Qux = Q[..., u_sl, u_sl], Q[..., u_sl, -1], Q[..., u_sl, :n]
+            Qreg = Quu + mu_I
+            if lo is None:
+                L, good = _factor(Qreg)
+                k = -_solve_factor(L, Qu.unsqueeze(-1)).squeeze(-1)
+                K = -_solve_factor(L, Qux)
+                free = torch.ones(*bs, m, dtype=torch.bool, device=device)
+            else:
+                res = box_qp(Qreg, Qu, lo[t], hi[t], x0=None if k_warm is None else k_warm[t], check=False)
+                free = res.free
+                good = (res.status != int(BoxQPStatus.NOT_POSITIVE_DEFINITE)) & \
+                    (res.status != int(BoxQPStatus.NON_FINITE))
+                L, okL = _factor(masked_hessian(Qreg, free))
+                good = good & okL
+                k = torch.where(good.unsqueeze(-1), res.x, torch.zeros((), **kw))
+                K = -_solve_factor(L, free.to(dtype).unsqueeze(-1) * Qux)
+        M = torch.cat([top, torch.cat([K, k.unsqueeze(-1)], -1), bot], -2)  # (*B, n+m+1, n+1)
+        V = M.mT @ Q @ M
+        V = 0.5 * (V + V.mT)
+        Ks[t], ks[t], frees[t], Qus[t], Quus[t] = K, k, free, Qu, Quu
         goods.append(good)
-        Ks[t], ks[t], frees[t] = K.expand(*bs, m, n), k.expand(*bs, m), free.expand(*bs, m)
-    ok = torch.stack(goods).all(0).expand(bs)
-    dV1 = torch.stack(d1).sum(0).expand(bs)
-    dV2 = 0.5 * torch.stack(d2).sum(0).expand(bs)
-    return _Backward(torch.stack(Ks), torch.stack(ks), torch.stack(frees), ok, dV1, dV2)
+    ks_ = torch.stack(ks)
+    dV1 = (ks_ * torch.stack(Qus)).sum((0, -1))
+    dV2 = 0.5 * (ks_ * (torch.stack(Quus) @ ks_.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
+    ok = torch.stack(goods).all(0)
+    return _Backward(torch.stack(Ks), ks_, torch.stack(frees), ok, dV1, dV2)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -16,21 +16,25 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["param", "euler_step", "euler_jacobian", "check_xu"]
+__all__ = ["param", "shape_of", "euler_step", "euler_jacobian", "check_xu"]
 
 
-def param(value: Tensor | float, like: Tensor, name: str, owner: str) -> Tensor:
-    """A model parameter as a tensor with the dtype/device of ``like`` (floats only are converted).
-
-    A tensor parameter broadcasts against ``like.shape[:-1]`` from the right (``(B,)`` for a batch of
-    models); nothing is cast silently: a tensor of another dtype is an error.
+def param(value: Tensor | float, like: Tensor, name: str, owner: str) -> Tensor | float:
+    """A model parameter for computations with ``like``: Python numbers stay floats (they broadcast for
+    free), tensors must have the dtype of ``like`` and broadcast against ``like.shape[:-1]`` from the
+    right (``(B,)`` for a batch of models).  Nothing is cast silently: another dtype is an error.
     """
     if isinstance(value, Tensor):
         if value.dtype != like.dtype:
             raise TypeError(f"{owner}: parameter '{name}' has dtype {value.dtype} but the state has "
                             f"{like.dtype}; cast one of them explicitly")
-        return value.to(like.device)
-    return torch.as_tensor(float(value), dtype=like.dtype, device=like.device)
+        return value if value.device == like.device else value.to(like.device)
+    return float(value)
+
+
+def shape_of(*values) -> torch.Size:
+    """Broadcast shape of the tensor values among ``values`` (floats count as scalars)."""
+    return torch.broadcast_shapes(*[v.shape for v in values if isinstance(v, Tensor)])
 
 
 def check_xu(x: Tensor, u: Tensor, n: int, m: int, owner: str) -> None:
@@ -44,20 +48,22 @@ def check_xu(x: Tensor, u: Tensor, n: int, m: int, owner: str) -> None:
         raise TypeError(f"{owner}: x and u must share a dtype, got {x.dtype} and {u.dtype}")
 
 
-def euler_step(x: Tensor, acc: Tensor, dt: Tensor) -> Tensor:
+def euler_step(x: Tensor, acc: Tensor, dt: Tensor | float) -> Tensor:
     """Semi-implicit Euler step of ``x = [q, v]`` given the acceleration ``acc`` (same shape as ``v``)."""
     k = acc.shape[-1]
     q, v = x[..., :k], x[..., k:]
-    dt = dt.unsqueeze(-1)
+    if isinstance(dt, Tensor):
+        dt = dt.unsqueeze(-1)
     v1 = v + dt * acc
     return torch.cat([q + dt * v1, v1], dim=-1)
 
 
-def euler_jacobian(a_q: Tensor, a_v: Tensor, a_u: Tensor, dt: Tensor) -> tuple[Tensor, Tensor]:
+def euler_jacobian(a_q: Tensor, a_v: Tensor, a_u: Tensor, dt: Tensor | float) -> tuple[Tensor, Tensor]:
     """``(A, B)`` of the semi-implicit Euler step from ``a_q, a_v (*B, k, k)`` and ``a_u (*B, k, m)``."""
     k = a_q.shape[-1]
     eye = torch.eye(k, dtype=a_q.dtype, device=a_q.device)
-    dt = dt[..., None, None]
+    if isinstance(dt, Tensor):
+        dt = dt[..., None, None]
     bs = torch.broadcast_shapes(a_q.shape, a_v.shape)
     a_q, a_v = a_q.expand(bs), a_v.expand(bs)
     Av = torch.cat([dt * a_q, eye + dt * a_v], dim=-1)

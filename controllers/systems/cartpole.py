@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param
+from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
 
 __all__ = ["CartPole"]
 
@@ -66,15 +66,19 @@ class CartPole:
     def step(self, x: Tensor, u: Tensor, t: int = 0) -> Tensor:
         """``x_{t+1} (*B, 4)`` by semi-implicit Euler; ``t`` is ignored (time-invariant)."""
         acc = self.acceleration(x, u)
-        dt = self._params(x)[4]
-        return euler_step(x.expand(*acc.shape[:-1], 4), acc, dt.expand(acc.shape[:-1]))
+        dt = param(self.dt, x, "dt", "CartPole")
+        if isinstance(dt, Tensor):
+            dt = dt.expand(acc.shape[:-1])
+        if x.shape[:-1] != acc.shape[:-1]:
+            x = x.expand(*acc.shape[:-1], 4)
+        return euler_step(x, acc, dt)
 
     def jacobian(self, x: Tensor, u: Tensor, t: int = 0) -> tuple[Tensor, Tensor]:
         """Analytic ``(A (*B, 4, 4), B (*B, 4, 1))`` of :meth:`step`."""
         check_xu(x, u, 4, 1, "CartPole.jacobian")
         mc, mp, length, g, dt = self._params(x)
         th, om, F = x[..., 1], x[..., 3], u[..., 0]
-        bs = torch.broadcast_shapes(th.shape, F.shape, mc.shape, mp.shape, length.shape, g.shape, dt.shape)
+        bs = torch.broadcast_shapes(th.shape, F.shape, shape_of(mc, mp, length, g, dt))
         s, c = torch.sin(th), torch.cos(th)
         D = mc + mp * s * s
         dD = 2 * mp * s * c
@@ -95,7 +99,7 @@ class CartPole:
         a_q = mat(zero, pdd_th, zero, thdd_th)
         a_v = mat(zero, pdd_om, zero, thdd_om)
         a_u = torch.stack([(1.0 / D).expand(bs), (-c / (length * D)).expand(bs)], -1).unsqueeze(-1)
-        return euler_jacobian(a_q, a_v, a_u, dt.expand(bs))
+        return euler_jacobian(a_q, a_v, a_u, dt.expand(bs) if isinstance(dt, Tensor) else dt)
 
     def energy(self, x: Tensor) -> Tensor:
         """Mechanical energy ``(*B,)`` (kinetic of cart and pole mass plus the pole's potential)."""

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param
+from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
 
 __all__ = ["Pendulum"]
 
@@ -60,20 +60,25 @@ class Pendulum:
     def step(self, x: Tensor, u: Tensor, t: int = 0) -> Tensor:
         """``x_{t+1} (*B, 2)`` by semi-implicit Euler; ``t`` is ignored (time-invariant)."""
         acc = self.acceleration(x, u)
-        dt = self._params(x)[4]
-        return euler_step(x, acc, dt.expand(acc.shape[:-1]))
+        dt = param(self.dt, x, "dt", "Pendulum")
+        if isinstance(dt, Tensor):
+            dt = dt.expand(acc.shape[:-1])
+        if x.shape[:-1] != acc.shape[:-1]:
+            x = x.expand(*acc.shape[:-1], 2)
+        return euler_step(x, acc, dt)
 
     def jacobian(self, x: Tensor, u: Tensor, t: int = 0) -> tuple[Tensor, Tensor]:
         """Analytic ``(A (*B, 2, 2), B (*B, 2, 1))`` of :meth:`step`."""
         check_xu(x, u, 2, 1, "Pendulum.jacobian")
         mass, length, b, g, dt = self._params(x)
-        bs = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], mass.shape, length.shape, b.shape, g.shape,
-                                    dt.shape)
+        bs = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], shape_of(mass, length, b, g, dt))
         ml2 = mass * length * length
-        a_q = (-g / length * torch.cos(x[..., 0])).expand(bs)[..., None, None]
-        a_v = (-b / ml2).expand(bs)[..., None, None]
-        a_u = (1.0 / ml2).expand(bs)[..., None, None]
-        return euler_jacobian(a_q, a_v, a_u, dt.expand(bs))
+        full = lambda v: (v if isinstance(v, Tensor) else torch.tensor(v, dtype=x.dtype, device=x.device)
+                          ).expand(bs)[..., None, None]
+        a_q = full(-g / length * torch.cos(x[..., 0]))
+        a_v = full(-b / ml2)
+        a_u = full(1.0 / ml2)
+        return euler_jacobian(a_q, a_v, a_u, dt.expand(bs) if isinstance(dt, Tensor) else dt)
 
     def energy(self, x: Tensor) -> Tensor:
         """Mechanical energy ``½ m l² ω² + m g l (1 - cos θ)`` ``(*B,)``."""
