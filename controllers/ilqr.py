@@ -555,14 +555,19 @@ def _forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi):
     ``alphas (S,)``; returns ``x (S, *B, T+1, n)``, ``u (S, *B, T, m)``.  ``K=None``: open loop (Eq. 100).
     """
     S, T = alphas.shape[0], u.shape[-2]
-    a = alphas.view(S, *([1] * (u.dim() - 1)))
+    a = alphas.view(S, *([1] * u.dim()))
+    base = (u.unsqueeze(0) + a * k.movedim(0, -2)).movedim(-2, 0)  # (T, S, *B, m): û_t + α k_t
+    x_tm = x.movedim(-2, 0)
+    lo_tm = None if lo is None else lo.movedim(-2, 0)
+    hi_tm = None if hi is None else hi.movedim(-2, 0)
     xt = x0.expand(S, *x0.shape)
     xs, us = [xt], []
     for t in range(T):
-        ut = u[..., t, :] + a * k[t]
+        ut = base[t]
         if K is not None:
-            ut = ut + (K[t] @ (xt - x[..., t, :]).unsqueeze(-1)).squeeze(-1)
-        ut = _clip(ut, None if lo is None else lo[..., t, :], None if hi is None else hi[..., t, :])
+            ut = ut + (K[t] @ (xt - x_tm[t]).unsqueeze(-1)).squeeze(-1)
+        if lo_tm is not None:
+            ut = torch.clamp(ut, lo_tm[t], hi_tm[t])
         us.append(ut)
         xt = _step(dyn, xt, ut, t)
         xs.append(xt)
