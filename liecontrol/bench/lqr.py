@@ -13,8 +13,10 @@ terminal cost (the anchors' last control sees no further state): the optimal con
 pypose (``pypose.module.LQR``) runs in this process; mpc.pytorch (``mpc.mpc.MPC`` with one LQR
 iteration and no bounds) needs numpy < 2 and runs in ``.venv-mpc`` through ``_mpc_anchor.py`` (the
 problem travels as an ``.npz`` file).  A failing anchor is reported with its error string as result.
-Each solver is timed as the median of ``--repeats`` runs after warm-up (problem objects are built once,
-outside the timed region, for every solver; our per-element cost checks are cached on the cost object).
+Each solver is timed as the median of ``--repeats`` runs after warm-up; the in-process solvers (ours,
+pypose) are timed interleaved, round after round, so load changes on a shared machine hit all alike.
+Problem objects are built once, outside the timed region, for every solver (our per-element cost checks
+are cached on the cost object).
 Records with ``problem = "lqr"`` time the default eager solver, ``"lqr-fused"`` the same solver with
 ``fused=True`` (each Riccati step's pivot updates as one ``torch.compile``'d kernel; compiled during
 warm-up).  The ``ours-float64`` rows give our float32 controls' distance to our float64 solution.
@@ -33,7 +35,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from liecontrol.bench._common import print_table, time_ms, write_json
+from liecontrol.bench._common import print_table, write_json
 
 __all__ = ["add_arguments", "run", "make_problem", "run_bench"]
 
@@ -103,7 +105,8 @@ def _ours_problem(inp: dict[str, torch.Tensor]):
                      QuadraticCost(inp["Q"], inp["R"], N=inp["N"], q=inp["q"], r=inp["r"]), inp["x0"])
 
 
-def _bench_ours(prob, dtype, repeats, fused=False):
+def _bench_ours(prob, dtype, fused=False):
+    """Our solver's timed callables ``{"fwd": fn, "fwd+bwd": fn}`` and controls (float32 and float64)."""
     from controllers import riccati
 
     inp = _ours_inputs(prob, dtype)
@@ -111,7 +114,6 @@ def _bench_ours(prob, dtype, repeats, fused=False):
     sol = riccati.solve(problem, grad="none", fused=fused)
     if not sol.status.all_converged:
         raise RuntimeError(f"our solver flagged elements: {set(sol.status.reason_names())}")
-    fwd = time_ms(lambda: riccati.solve(problem, grad="none", fused=fused), repeats=repeats)
     leaves = {k: v.clone().requires_grad_() for k, v in inp.items()}
     problem_g = _ours_problem(leaves)
 
@@ -119,10 +121,10 @@ def _bench_ours(prob, dtype, repeats, fused=False):
         s = riccati.solve(problem_g, fused=fused)
         (s.u.sum() + s.x.sum()).backward()
 
-    fb = time_ms(fwdbwd, repeats=repeats)
     # float64 reference for the accuracy column
     sol64 = riccati.solve(_ours_problem(_ours_inputs(prob, torch.float64)), grad="none")
-    return {"fwd_ms": fwd, "fwdbwd_ms": fb, "u": sol.u.double(), "u64": sol64.u}
+    return {"fns": {"fwd": lambda: riccati.solve(problem, grad="none", fused=fused), "fwd+bwd": fwdbwd},
+            "u": sol.u.double(), "u64": sol64.u}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -134,8 +136,8 @@ def _err(e: BaseException) -> str:
     return f"failed: {type(e).__name__}: {str(e).splitlines()[0] if str(e) else ''}"[:240]
 
 
-def _bench_pypose(prob, dtype, repeats):
-    out: dict = {}
+def _bench_pypose(prob, dtype):
+    """pypose's timed callables and controls, or ``{"error": ...}``; a failing pass gets an error entry."""
     try:
         import pypose as pp
     except Exception as e:  # missing anchor
@@ -151,25 +153,47 @@ def _bench_pypose(prob, dtype, repeats):
                             torch.zeros(Bsz, n, m, dtype=dtype), lv["c"], torch.zeros(Bsz, n, dtype=dtype))
         return lv, pp.module.LQR(lti, lv["C"], lv["p"], T)
 
+    out: dict = {"fns": {}, "errors": {}}
     try:
         _, lqr = build(False)
         with torch.no_grad():
             x, u, _ = lqr(t["x0"])
         out["u"] = u.detach().double()
-        out["fwd_ms"] = time_ms(lambda: torch.no_grad()(lqr)(t["x0"]), repeats=repeats)
+        out["fns"]["fwd"] = lambda: torch.no_grad()(lqr)(t["x0"])
     except Exception as e:
         return {"error": _err(e)}
+    lv, lqr_g = build(True)
+
+    def fwdbwd():
+        x, u, _ = lqr_g(lv["x0"])
+        (u.sum() + x.sum()).backward()
+
     try:
-        lv, lqr_g = build(True)
-
-        def fwdbwd():
-            x, u, _ = lqr_g(lv["x0"])
-            (u.sum() + x.sum()).backward()
-
-        out["fwdbwd_ms"] = time_ms(fwdbwd, repeats=repeats)
+        fwdbwd()
+        out["fns"]["fwd+bwd"] = fwdbwd
     except Exception as e:
-        out["fwdbwd_error"] = _err(e)
+        out["errors"]["fwd+bwd"] = _err(e)
     return out
+
+
+def _time_interleaved(fns: dict[str, object], repeats: int, warmup: int = 2) -> dict[str, float]:
+    """Median wall time (ms) of each callable, run in rotating order round after round, so that a change
+    of machine load during the run affects every solver alike."""
+    import statistics
+    import time
+
+    names = list(fns)
+    for name in names:
+        for _ in range(warmup):
+            fns[name]()
+    samples: dict[str, list[float]] = {k: [] for k in names}
+    for r in range(max(repeats, 1)):
+        order = names[r % len(names):] + names[:r % len(names)]
+        for name in order:
+            t0 = time.perf_counter()
+            fns[name]()
+            samples[name].append(1e3 * (time.perf_counter() - t0))
+    return {k: statistics.median(v) for k, v in samples.items()}
 
 
 def _default_mpc_python() -> str:
@@ -219,15 +243,26 @@ def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads
         torch.set_num_threads(threads)
     dt = getattr(torch, dtype)
     prob = make_problem(B, T, n, m, seed)
-    variants = {"lqr": _bench_ours(prob, dt, repeats)}
+    variants = {"lqr": _bench_ours(prob, dt)}
     if fused:
         try:
-            variants["lqr-fused"] = _bench_ours(prob, dt, repeats, fused=True)
+            variants["lqr-fused"] = _bench_ours(prob, dt, fused=True)
         except Exception as e:  # torch.compile unavailable: say so, keep the eager figures
             print(f"lqr-fused skipped: {_err(e)}", file=sys.stderr)
     results = {}
     if "pypose" in anchors:
-        results["pypose"] = _bench_pypose(prob, dt, repeats)
+        results["pypose"] = _bench_pypose(prob, dt)
+    # in-process solvers: timed interleaved, per pass
+    for pas in ("fwd", "fwd+bwd"):
+        fns = {("ours", k): v["fns"][pas] for k, v in variants.items()}
+        fns.update({("anchor", k): v["fns"][pas] for k, v in results.items() if pas in v.get("fns", {})})
+        times = _time_interleaved(fns, repeats)
+        key = "fwd_ms" if pas == "fwd" else "fwdbwd_ms"
+        for (kind, name), ms in times.items():
+            (variants if kind == "ours" else results)[name][key] = ms
+    for res in results.values():
+        for pas, msg in res.get("errors", {}).items():
+            res["fwd_error" if pas == "fwd" else "fwdbwd_error"] = msg
     if "mpc" in anchors:
         results["mpc.pytorch"] = _bench_mpc(prob, dtype, repeats, threads, mpc_python)
     records = []
