@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import enum
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -54,6 +55,7 @@ __all__ = [
     "ILQRProblem",
     "ILQRSolution",
     "ILQROptions",
+    "ResidualCost",
     "ilqr",
 ]
 
@@ -246,6 +248,62 @@ class ILQRSolution:
     clamped: Tensor
     cost_history: Tensor
     mu: Tensor
+
+
+@dataclass(frozen=True, eq=False)
+class ResidualCost:
+    """Quadratic cost on a residual of the state (seed 004 §9, Eq. 102 and 106)::
+
+        c(x, u) = Σ_{t=0}^{T} f(x_t)ᵀ Q_t f(x_t) + Σ_{t=0}^{T-1} u_tᵀ R_t u_t
+
+    with Gauss-Newton derivatives (Eq. 104-105): ``g_x = 2 Jᵀ Q f``, ``H_xx ≈ 2 Jᵀ Q J``, ``g_u = 2 R u``,
+    ``H_uu = 2 R``; with them the batch iLQR step is Eq. 108.  (Implicit gradients use exact Hessians.)
+
+    Args:
+        residual: ``f(x (*B, T+1, n)) -> (*B, T+1, p)``, applied per time step (no mixing across time or
+            batch), e.g. ``f(x) = f_ee(x) - μ`` for a reaching task.
+        Q: ``(p, p)``, ``(T+1, p, p)`` or ``(*B, T+1, p, p)`` precision (zero at non-via-point times).
+        R: ``(m, m)``, ``(T, m, m)`` or ``(*B, T, m, m)``.
+        jacobian: optional ``J(x (*B, T+1, n)) -> (*B, T+1, p, n)``; autograd otherwise.
+    """
+
+    residual: Callable[[Tensor], Tensor]
+    Q: Tensor
+    R: Tensor
+    jacobian: Callable[[Tensor], Tensor] | None = None
+
+    def __post_init__(self) -> None:
+        if not callable(self.residual):
+            raise TypeError("ResidualCost: field 'residual' must be callable f(x) -> (*B, T+1, p)")
+        for name in ("Q", "R"):
+            v = getattr(self, name)
+            if not isinstance(v, Tensor) or v.dim() < 2 or v.shape[-1] != v.shape[-2]:
+                raise ValueError(f"ResidualCost: field '{name}' must be a square (*B, T, k, k) or (k, k) "
+                                 "tensor")
+
+    def _jac(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        if self.jacobian is not None:
+            return self.residual(x), self.jacobian(x)
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            f = self.residual(xg)
+            rows = [torch.autograd.grad(f[..., i].sum(), xg, retain_graph=True)[0]
+                    for i in range(f.shape[-1])]
+        return f.detach(), torch.stack(rows, -2)
+
+    def evaluate(self, x: Tensor, u: Tensor) -> Tensor:
+        f = self.residual(x)
+        cx = (f.unsqueeze(-2) @ self.Q @ f.unsqueeze(-1))[..., 0, 0].sum(-1)
+        cu = (u.unsqueeze(-2) @ self.R @ u.unsqueeze(-1))[..., 0, 0].sum(-1)
+        return cx + cu
+
+    def derivatives(self, x: Tensor, u: Tensor):
+        f, J = self._jac(x)
+        JtQ = J.mT @ self.Q
+        gx = 2 * (JtQ @ f.unsqueeze(-1)).squeeze(-1)
+        gu = 2 * (self.R @ u.unsqueeze(-1)).squeeze(-1)
+        R = self.R if self.R.dim() > 2 else self.R.unsqueeze(0)  # explicit time dim
+        return gx, gu, 2 * JtQ @ J, None, 2 * R
 
 
 # --------------------------------------------------------------------------------------------------

@@ -286,3 +286,43 @@ def test_bad_input():
     with pytest.raises(TypeError, match="dtype"):
         ILQRProblem(prob.dynamics, prob.cost, x0.float(), 12)
     assert int(Reason.CONVERGED) == 0
+
+
+def test_residual_cost_reaching_task_eq_102_108():
+    # planar 2-link arm with velocity commands (seed §9.1): residual f(x) = f_ee(x) - μ at two via points
+    from controllers.ilqr import ResidualCost
+
+    T, dt = 16, 0.1
+    lengths = torch.tensor([1.0, 0.8], dtype=D64)
+
+    def fk(q):
+        a, b = q[..., 0], q[..., 0] + q[..., 1]
+        return torch.stack([lengths[0] * torch.cos(a) + lengths[1] * torch.cos(b),
+                            lengths[0] * torch.sin(a) + lengths[1] * torch.sin(b)], -1)
+
+    dyn = LinearDynamics(torch.eye(2, dtype=D64), dt * torch.eye(2, dtype=D64))
+    Q = torch.zeros(T + 1, 2, 2, dtype=D64)
+    Q[T] = 100 * torch.eye(2)
+    Q[T // 2] = 10 * torch.eye(2)
+    x0 = torch.tensor([[0.3, 0.5], [0.1, 1.0]], dtype=D64)
+
+    def problem(mu):
+        cost = ResidualCost(lambda x: fk(x) - mu.unsqueeze(-2), Q, 0.01 * torch.eye(2, dtype=D64))
+        return ILQRProblem(dyn, cost, x0, T, u_lower=-1.5, u_upper=1.5)
+
+    mu = torch.tensor([[0.5, 1.2], [0.2, 1.4]], dtype=D64, requires_grad=True)
+    rec = ilqr(problem(mu), options=TIGHT)
+    bat = ilqr(problem(mu), method="batch", grad="none", options=TIGHT)  # Eq. 108
+    assert bool(rec.status.converged.all()) and bool(bat.status.converged.all())
+    torch.testing.assert_close(rec.cost.detach(), bat.cost, rtol=1e-9, atol=1e-12)
+    assert float((fk(rec.x[:, -1]) - mu).detach().abs().max()) < 0.01  # reached
+    (g,) = torch.autograd.grad(rec.cost.sum() + rec.u.sum(), mu)
+    h = 1e-5
+    for i in range(4):
+        e = torch.zeros(4, dtype=D64)
+        e[i] = h
+        e = e.view(2, 2)
+        sp = ilqr(problem(mu.detach() + e), grad="none", options=TIGHT)
+        sm = ilqr(problem(mu.detach() - e), grad="none", options=TIGHT)
+        fd = float((sp.cost.sum() + sp.u.sum()) - (sm.cost.sum() + sm.u.sum())) / (2 * h)
+        assert abs(float(g.view(-1)[i]) - fd) < 1e-5 * max(1.0, abs(fd))
