@@ -114,25 +114,16 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
     parts = [Qs, R] + [v for v in (N, qs, r) if v is not None]
     bC = max(v.shape[0] for v in parts)
     TC = max(v.shape[1] for v in parts)
-    # slice assignments into one buffer (no concatenations, no transposed copies of the whole thing)
-    # time-major storage: the backward pass reads C[:, t] as one contiguous block
-    C = torch.empty(TC, bC, m + n + 1, m + n + 1, dtype=dt, device=dev).transpose(0, 1)
-    C[:, :, :m, :m] = R
-    C[:, :, m:m + n, m:m + n] = Qs
-    if N is None:
-        C[:, :, :m, m:m + n] = 0.0
-        C[:, :, m:m + n, :m] = 0.0
-    else:
-        C[:, :, :m, m:m + n] = N.mT
-        C[:, :, m:m + n, :m] = N
-    for lo, hi, v in ((0, m, r), (m, m + n, qs)):
-        if v is None:
-            C[:, :, lo:hi, -1] = 0.0
-            C[:, :, -1, lo:hi] = 0.0
-        else:
-            C[:, :, lo:hi, -1] = v
-            C[:, :, -1, lo:hi] = v
-    C[:, :, -1, -1] = 0.0
+    z = lambda *sh: torch.zeros(bC, TC, *sh, dtype=dt, device=dev)
+    Rr, Qq = _expand_bt(R, bC, TC), _expand_bt(Qs, bC, TC)
+    Nn = z(n, m) if N is None else _expand_bt(N, bC, TC)
+    qq = z(n) if qs is None else _expand_bt(qs, bC, TC)
+    rr = z(m) if r is None else _expand_bt(r, bC, TC)
+    C = torch.cat([
+        torch.cat([Rr, Nn.mT, rr.unsqueeze(-1)], -1),
+        torch.cat([Nn, Qq, qq.unsqueeze(-1)], -1),
+        torch.cat([rr.unsqueeze(-2), qq.unsqueeze(-2), z(1, 1)], -1),
+    ], -2)
 
     QT = Q[:, -1]
     qT = None if q is None else q[:, -1]
