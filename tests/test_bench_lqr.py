@@ -33,9 +33,9 @@ def test_bench_lqr_pypose_smoke(tmp_path):
     parser = __import__("argparse").ArgumentParser()
     bench.add_arguments(parser)
     args = parser.parse_args(["--B", "4", "--T", "6", "--n", "3", "--m", "2", "--repeats", "1",
-                              "--anchors", "pypose", "--no-fused", "--json", str(out)])
+                              "--anchors", "pypose,plain", "--no-fused", "--json", str(out)])
     assert bench.run(args) == 0
-    _check(json.loads(out.read_text()), ["pypose"])
+    _check(json.loads(out.read_text()), ["pypose", "plain-riccati"])
 
 
 @pytest.mark.skipif(not MPC_PY.exists(), reason="no .venv-mpc with mpc.pytorch")

@@ -54,7 +54,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=1,
                         help="torch threads for every solver (default 1: robust timings on a shared machine; "
                              "0 keeps torch's default)")
-    parser.add_argument("--anchors", default="pypose,mpc", help="comma-separated subset of: pypose,mpc")
+    parser.add_argument("--anchors", default="pypose,mpc,plain",
+                        help="comma-separated subset of: pypose, mpc (mpc.pytorch), plain (a textbook "
+                             "batched Riccati loop in torch, the issue's 'unoptimized' reference)")
     parser.add_argument("--mpc-python", default=None,
                         help="interpreter with mpc.pytorch (default: .venv-mpc/bin/python of the repo)")
     parser.add_argument("--no-fused", action="store_true",
@@ -176,6 +178,50 @@ def _bench_pypose(prob, dtype):
     return out
 
 
+def _plain_riccati(inp: dict[str, torch.Tensor]):
+    """A plain batched Riccati recursion (textbook form, one ``torch.linalg.solve`` per step): the
+    reference point "an unoptimized batched loop" of the issue.  Returns ``(x, u)``."""
+    A, B, c, Q, R, N, q, r, x0 = (inp[k] for k in ("A", "B", "c", "Q", "R", "N", "q", "r", "x0"))
+    A, B, c = A[:, 0], B[:, 0], c[:, 0]
+    T = R.shape[1]
+    P, p = Q[:, T], q[:, T]
+    Ks, ks = [None] * T, [None] * T
+    for t in range(T - 1, -1, -1):
+        Pc = (P @ c.unsqueeze(-1)).squeeze(-1) + p
+        Qxx = Q[:, t] + A.mT @ P @ A
+        Quu = R[:, t] + B.mT @ P @ B
+        Qux = N[:, t].mT + B.mT @ P @ A
+        qx = q[:, t] + (A.mT @ Pc.unsqueeze(-1)).squeeze(-1)
+        qu = r[:, t] + (B.mT @ Pc.unsqueeze(-1)).squeeze(-1)
+        sol = -torch.linalg.solve(Quu, torch.cat([Qux, qu.unsqueeze(-1)], -1))
+        K, k = sol[..., :-1], sol[..., -1]
+        P = Qxx + Qux.mT @ K
+        P = 0.5 * (P + P.mT)
+        p = qx + (Qux.mT @ k.unsqueeze(-1)).squeeze(-1)
+        Ks[t], ks[t] = K, k
+    x, xs, us = x0, [x0], []
+    for t in range(T):
+        u = (Ks[t] @ x.unsqueeze(-1)).squeeze(-1) + ks[t]
+        x = (A @ x.unsqueeze(-1) + B @ u.unsqueeze(-1)).squeeze(-1) + c
+        xs.append(x)
+        us.append(u)
+    return torch.stack(xs, 1), torch.stack(us, 1)
+
+
+def _bench_plain(prob, dtype):
+    inp = _ours_inputs(prob, dtype)
+    with torch.no_grad():
+        _, u = _plain_riccati(inp)
+    leaves = {k: v.clone().requires_grad_() for k, v in inp.items()}
+
+    def fwdbwd():
+        x, u = _plain_riccati(leaves)
+        (u.sum() + x.sum()).backward()
+
+    return {"fns": {"fwd": lambda: torch.no_grad()(_plain_riccati)(inp), "fwd+bwd": fwdbwd},
+            "u": u.double(), "errors": {}}
+
+
 def _time_interleaved(fns: dict[str, object], repeats: int, warmup: int = 2) -> dict[str, float]:
     """Median wall time (ms) of each callable, run in rotating order round after round, so that a change
     of machine load during the run affects every solver alike."""
@@ -233,7 +279,7 @@ def _bench_mpc(prob, dtype_name, repeats, threads, python):
 
 
 def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads=1,
-              anchors=("pypose", "mpc"), mpc_python=None, fused=False) -> list[dict]:
+              anchors=("pypose", "mpc", "plain"), mpc_python=None, fused=False) -> list[dict]:
     """Run the benchmark and return the records (see the module docstring).
 
     With ``fused`` a second set of records (``problem = "lqr-fused"``) times ``riccati.solve(...,
@@ -252,6 +298,8 @@ def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads
     results = {}
     if "pypose" in anchors:
         results["pypose"] = _bench_pypose(prob, dt)
+    if "plain" in anchors:
+        results["plain-riccati"] = _bench_plain(prob, dt)
     # in-process solvers: timed interleaved, per pass
     for pas in ("fwd", "fwd+bwd"):
         fns = {("ours", k): v["fns"][pas] for k, v in variants.items()}
