@@ -704,11 +704,20 @@ def ilqr(
     x0s = torch.where(bad.unsqueeze(-1), zero, x0)
     u0 = _clip(torch.where(bad[..., None, None], zero, u_init), lo, hi)
 
-    ctx = torch.enable_grad() if grad is GradMode.UNROLL else torch.no_grad()
-    with ctx:
-        if grad is not GradMode.UNROLL:
-            x0s, u0 = x0s.detach(), u0.detach()
-        out = _solve(problem, x0s, u0, lo, hi, bad, bs, method, opts)
+    if grad is GradMode.UNROLL:
+        with torch.enable_grad():
+            out = _solve(problem, x0s, u0, lo, hi, bad, bs, method, opts)
+    else:
+        # no graph while iterating; inference mode (less overhead per kernel) when no derivative inside the
+        # loop needs autograd, results cloned out of it
+        d = problem.dynamics
+        analytic = isinstance(problem.cost, QuadraticCost) and (
+            isinstance(d, LinearDynamics) or _is_system(d)
+            or (isinstance(d, NonlinearDynamics) and d.jacobian is not None))
+        with torch.inference_mode() if analytic else torch.no_grad():
+            out = _solve(problem, x0s.detach(), u0.detach(), lo, hi, bad, bs, method, opts)
+        if analytic:
+            out = tuple(v.clone() for v in out)
     x, u, K, kff, free, reason, iters, hist, mu = out
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
         x, u = _attach_implicit(problem, x0s, x, u, free, bs)

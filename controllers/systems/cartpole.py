@@ -51,11 +51,13 @@ class CartPole:
         """``[p̈, θ̈] (*B, 2)`` from ``x (*B, 4)`` and ``u (*B, 1)``."""
         check_xu(x, u, 4, 1, "CartPole.acceleration")
         mc, mp, length, g, _ = self._params(x)
-        th, om, F = x[..., 1], x[..., 3], u[..., 0]
+        _, th, _, om = x.unbind(-1)
+        F = u[..., 0]
         s, c = torch.sin(th), torch.cos(th)
-        D = mc + mp * s * s
-        pdd = (F + mp * s * (length * om * om + g * c)) / D
-        thdd = -(F * c + mp * length * om * om * s * c + (mc + mp) * g * s) / (length * D)
+        D = mc + mp * (s * s)
+        w2 = om * om
+        pdd = (F + mp * s * (length * w2 + g * c)) / D
+        thdd = (c * (F + (mp * length) * w2 * s) + ((mc + mp) * g) * s) / (-length * D)
         return torch.stack(torch.broadcast_tensors(pdd, thdd), dim=-1)
 
     def derivative(self, x: Tensor, u: Tensor) -> Tensor:
