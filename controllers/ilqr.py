@@ -493,10 +493,14 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
     one = torch.ones((), **kw)
     u_sl = slice(n, n + m)
     Ks, ks, frees, goods, Qus, Quus = [None] * T, [None] * T, [None] * T, [], [None] * T, [None] * T
+    Hs, Fs = H.unbind(0), F.unbind(0)
+    scalar = m == 1
+    if scalar and lo is not None:
+        los, his = lo[..., 0].unbind(0), hi[..., 0].unbind(0)
     for t in range(T - 1, -1, -1):
-        Fk = F[t]
-        Q = H[t] + Fk.mT @ (V @ Fk)
-        if m == 1:
+        Fk = Fs[t]
+        Q = Hs[t] + Fk.mT @ (V @ Fk)
+        if scalar:
             # one control: the box QP is a clip and the factorization a division
             quu, qu, qux = Q[..., n, n], Q[..., n, -1], Q[..., n, :n]
             h = quu + mu
@@ -505,15 +509,14 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
             kraw = -qu / h
             if lo is None:
                 k = kraw
-                free = torch.ones_like(good)
+                free = good | True
                 K = qux * (-1.0 / h).unsqueeze(-1)
             else:
-                lt, ht = lo[t][..., 0], hi[t][..., 0]
-                k = torch.clamp(kraw, lt, ht)
-                free = (kraw >= lt) & (kraw <= ht)
+                k = torch.clamp(kraw, los[t], his[t])
+                free = (kraw >= los[t]) & (kraw <= his[t])
                 K = qux * (-free.to(dtype) / h).unsqueeze(-1)
-            k, free, K = k.unsqueeze(-1), free.unsqueeze(-1), K.unsqueeze(-2)
-            Quu, Qu = quu.unsqueeze(-1).unsqueeze(-1), qu.unsqueeze(-1)
+            row = torch.cat([K, k.unsqueeze(-1)], -1).unsqueeze(-2)
+            Quu, Qu = quu, qu
         else:
             Quu, Qu, Qux = Q[..., u_sl, u_sl], Q[..., u_sl, -1], Q[..., u_sl, :n]
             Qreg = Quu + mu_I
@@ -531,16 +534,23 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
                 good = good & okL
                 k = torch.where(good.unsqueeze(-1), res.x, torch.zeros((), **kw))
                 K = -_solve_factor(L, free.to(dtype).unsqueeze(-1) * Qux)
-        M = torch.cat([top, torch.cat([K, k.unsqueeze(-1)], -1), bot], -2)  # (*B, n+m+1, n+1)
+            row = torch.cat([K, k.unsqueeze(-1)], -1)
+        M = torch.cat([top, row, bot], -2)  # (*B, n+m+1, n+1)
         V = M.mT @ Q @ M
         V = 0.5 * (V + V.mT)
         Ks[t], ks[t], frees[t], Qus[t], Quus[t] = K, k, free, Qu, Quu
         goods.append(good)
-    ks_ = torch.stack(ks)
-    dV1 = (ks_ * torch.stack(Qus)).sum((0, -1))
-    dV2 = 0.5 * (ks_ * (torch.stack(Quus) @ ks_.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
+    if scalar:  # per-step values were kept without their singleton control dim
+        ks_ = torch.stack(ks).unsqueeze(-1)
+        Ks_, frees_ = torch.stack(Ks).unsqueeze(-2), torch.stack(frees).unsqueeze(-1)
+        dV1 = (ks_[..., 0] * torch.stack(Qus)).sum(0)
+        dV2 = 0.5 * (ks_[..., 0] ** 2 * torch.stack(Quus)).sum(0)
+    else:
+        ks_, Ks_, frees_ = torch.stack(ks), torch.stack(Ks), torch.stack(frees)
+        dV1 = (ks_ * torch.stack(Qus)).sum((0, -1))
+        dV2 = 0.5 * (ks_ * (torch.stack(Quus) @ ks_.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
     ok = torch.stack(goods).all(0)
-    return _Backward(torch.stack(Ks), ks_, torch.stack(frees), ok, dV1, dV2)
+    return _Backward(Ks_, ks_, frees_, ok, dV1, dV2)
 
 
 # --------------------------------------------------------------------------------------------------
