@@ -50,6 +50,8 @@ __all__ = [
     "ls_recursive_gains",
     "RiccatiFactors",
     "assemble",
+    "assemble_cost",
+    "assemble_dynamics",
     "backward_pass",
     "closed_loop",
 ]
@@ -96,6 +98,11 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
     Q and R must be symmetric (:class:`~controllers.problem.QuadraticCost` checks it); they are used
     as given, and the implicit gradients are the symmetric ones.
     """
+    return (assemble_dynamics(A, B, c, bs),) + assemble_cost(Q, R, N, q, r, T, bs)
+
+
+def assemble_dynamics(A, B, c, bs: torch.Size) -> torch.Tensor:
+    """The dynamics part of :func:`assemble`: ``F̃ = [[B, A, c], [0, 0, 1]]``."""
     n, m = A.shape[-1], B.shape[-1]
     A, B, c = _flat(A, bs, 2), _flat(B, bs, 2), _flat(c, bs, 1)
     bF = max(A.shape[0], B.shape[0], 1 if c is None else c.shape[0])
@@ -107,7 +114,13 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
     bottom = torch.zeros(bF, TF, 1, m + n + 1, dtype=dt, device=dev)
     bottom[..., 0, -1] = 1.0
     F = torch.cat([torch.cat(top, -1), bottom], -2)
+    return F
 
+
+def assemble_cost(Q, R, N, q, r, T: int, bs: torch.Size) -> tuple[torch.Tensor, torch.Tensor]:
+    """The cost part of :func:`assemble`: ``(C̃, Ṽ_T)``."""
+    n, m = Q.shape[-1], R.shape[-1]
+    dt, dev = Q.dtype, Q.device
     Q, R, N, q, r = _flat(Q, bs, 2), _flat(R, bs, 2), _flat(N, bs, 2), _flat(q, bs, 1), _flat(r, bs, 1)
     Qs = _tsel(Q, 0, T)
     qs = None if q is None else _tsel(q, 0, T)
@@ -133,7 +146,7 @@ def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
     if qT is not None:
         VT[:, :n, n] = qT
         VT[:, n, :n] = qT
-    return F, C, VT
+    return C, VT
 
 
 # --------------------------------------------------------------------------------------------------
@@ -195,7 +208,8 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
     C0 = C[:, 0]
     elim = _fused_eliminate() if fused else None
     # H is a fresh tensor at every step, so the gains and value matrices are kept as views of it
-    Ks, Vs, Huus, pivs = [], [V], [], []
+    Ks, Vs, Huus = [], [V], []
+    pivbuf = torch.empty(Bt, T, m, 1, 1, dtype=dt, device=dev)
     for t in range(T - 1, -1, -1):
         Ft = (F[0, t] if shared_F else F[:, t]) if tvF else F0
         Ct = C[:, t] if tvC else C0
@@ -207,12 +221,11 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
             Huus.append(H[:, :m, :m].clone())
         if fused:
             S, V, inv = elim(H, E, m)
-            pivs.append(inv)
+            pivbuf[:, t] = inv.reshape(Bt, m, 1, 1)
             Ks.append(S)
         else:
             for i in range(m):
-                inv = torch.reciprocal(H[:, i:i + 1, i:i + 1])
-                pivs.append(inv)
+                inv = torch.reciprocal(H[:, i:i + 1, i:i + 1], out=pivbuf[:, t, i])
                 r = H[:, i:i + 1, :] * inv
                 H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
             V = H[:, m:, m:]
@@ -220,7 +233,7 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
         Vs.append(V)
     Ks.reverse()
     Vs.reverse()
-    piv = torch.stack(pivs, 1).reshape(Bt, T, m).flip(1)
+    piv = pivbuf.reshape(Bt, T, m)
     ok = (piv > 0).all(-1) & torch.isfinite(piv).all(-1)
     Kt = torch.stack(Ks, 1).neg_()
     Vst = torch.stack(Vs, 1) if keep_huu else torch.stack([Vs[0], Vs[-1].expand(Bt, n1, n1)], 1)
@@ -301,14 +314,18 @@ def _backward_graph(F, C, VT, T: int, Bt: int, m: int) -> RiccatiFactors:
 
 
 def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool = False,
-                keep_huu: bool = False, fused: bool = False):
+                keep_huu: bool = False, fused: bool = False, stage=None):
     """Solve the canonical LQ problem; returns ``(x, u, J, factors, F)`` flattened to ``(Bt, ...)``.
 
     ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.
     """
     n, m = A.shape[-1], B.shape[-1]
     Bt = max(bs.numel(), 1)
-    F, C, VT = assemble(A, B, c, Q, R, N, q, r, T, bs)
+    if stage is None:
+        F, C, VT = assemble(A, B, c, Q, R, N, q, r, T, bs)
+    else:  # cost part precomputed (and cached on the cost object by solve())
+        F = assemble_dynamics(A, B, c, bs)
+        C, VT = stage
     if graph:
         fac = _backward_graph(F, C, VT, T, Bt, m)
     else:
@@ -327,7 +344,7 @@ def _solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool 
 
 def lqr(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, Q: torch.Tensor, R: torch.Tensor,
         N: torch.Tensor | None, q: torch.Tensor | None, r: torch.Tensor | None, x0: torch.Tensor,
-        T: int, grad: GradMode | str = GradMode.IMPLICIT, fused: bool = False):
+        T: int, grad: GradMode | str = GradMode.IMPLICIT, fused: bool = False, _stage=None):
     """Functional core on canonical tensors (no validation): returns ``x (*B, T+1, n)``,
     ``u (*B, T, m)``, ``K (*B, T, m, n)``, ``k (*B, T, m)``, ``J (*B,)`` and ``ok (*B, T)`` (False
     where ``H_uu`` was not positive definite).
@@ -352,7 +369,8 @@ def lqr(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, Q: torch.Tenso
         ctx = torch.enable_grad() if grad is GradMode.UNROLLED else torch.no_grad()
         with ctx:
             x, u, J, fac, _ = _solve_core(A, B, c, Q, R, N, q, r, x0, T, bs,
-                                          graph=grad is GradMode.UNROLLED, fused=fused)
+                                          graph=grad is GradMode.UNROLLED, fused=fused,
+                                          stage=_stage if grad is GradMode.NONE else None)
         K, k, info = fac.Kt[..., :n], fac.Kt[..., n], fac.ok
     return (x.reshape(*bs, T + 1, n), u.reshape(*bs, T, m), K.reshape(*bs, T, m, n), k.reshape(*bs, T, m),
             J.reshape(bs), info.reshape(*bs, T))
@@ -370,6 +388,9 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
         fused: run each Riccati step's pivot updates as one ``torch.compile``'d kernel (compiled on
             first use per shape/dtype, seconds; then faster).  Needs a working ``torch.compile``.
 
+    With ``grad="none"`` the expansion of the cost (references, stage matrices) is cached on the cost
+    object, so re-solving with the same cost and new ``x0`` or dynamics (MPC) skips it.
+
     Returns:
         :class:`LQSolution` with ``x``, ``u``, gains ``K``/``k`` (``u_t = K_t x_t + k_t``), the optimal
         cost (references included) and per-element status: ``SINGULAR_QUU`` where the Cholesky
@@ -379,9 +400,21 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
     if not isinstance(problem, LQProblem):
         raise TypeError(f"solve: argument 'problem' must be an LQProblem, got {type(problem).__name__}")
     T = problem.T
+    grad = GradMode(grad)
     d, cost = problem.dynamics, problem.cost
-    cc = cost.canonical(T)
-    x, u, K, k, J, info = lqr(d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0, T, grad, fused)
+    stage = None
+    if grad is GradMode.NONE:
+        # the cost's expansion and stage matrices depend on the cost alone: cache them on the cost
+        key = ("stage", T, tuple(problem.batch_shape))
+        if key not in cost._cache:
+            with torch.no_grad():
+                cc = cost.canonical(T)
+                cost._cache[key] = (cc, assemble_cost(cc.Q, cc.R, cc.N, cc.q, cc.r, T, problem.batch_shape))
+        cc, stage = cost._cache[key]
+    else:
+        cc = cost.canonical(T)
+    x, u, K, k, J, info = lqr(d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0, T, grad, fused,
+                              _stage=stage)
     J = J + cc.const
     reason = (~info.all(-1)).to(torch.int64) * int(Reason.SINGULAR_QUU)
     if check:

@@ -218,3 +218,20 @@ def test_fused_kernel_matches_eager():
     torch.testing.assert_close(g1, g2)
     with pytest.raises(ValueError, match="fused"):
         riccati.solve(p, grad="unrolled", fused=True)
+
+
+def test_cost_expansion_cache_is_per_cost_and_batch_shape():
+    """grad='none' caches the cost's stage matrices on the cost object: reusing the cost with a new x0
+    (an MPC step) or a different batch shape still gives the right answer."""
+    g = torch.Generator().manual_seed(9)
+    p = random_problem(g, b=(3,), T=5)
+    first = riccati.solve(p, grad="none")
+    assert any(k[0] == "stage" for k in p.cost._cache)
+    x0 = torch.randn(3, p.n, dtype=D, generator=g)
+    p2 = dataclasses.replace(p, x0=x0)
+    torch.testing.assert_close(riccati.solve(p2, grad="none").u, lifted.solve_lifted(p2).u, atol=1e-9, rtol=0)
+    torch.testing.assert_close(riccati.solve(p, grad="none").u, first.u)
+    shared = random_problem(g, b=(), T=5)
+    p3 = dataclasses.replace(shared, x0=torch.randn(4, shared.n, dtype=D, generator=g))
+    riccati.solve(shared, grad="none")
+    torch.testing.assert_close(riccati.solve(p3, grad="none").u, lifted.solve_lifted(p3).u, atol=1e-9, rtol=0)
