@@ -409,7 +409,10 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
         if key not in cost._cache:
             with torch.no_grad():
                 cc = cost.canonical(T)
-                cost._cache[key] = (cc, assemble_cost(cc.Q, cc.R, cc.N, cc.q, cc.r, T, problem.batch_shape))
+                C, VT = assemble_cost(cc.Q, cc.R, cc.N, cc.q, cc.r, T, problem.batch_shape)
+                # time-major storage (a view with the usual shape): C[:, t] is then one contiguous block
+                C = C.transpose(0, 1).contiguous().transpose(0, 1)
+                cost._cache[key] = (cc, (C, VT))
         cc, stage = cost._cache[key]
     else:
         cc = cost.canonical(T)
