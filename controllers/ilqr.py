@@ -624,16 +624,21 @@ def _forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi):
     """
     S, T = alphas.shape[0], u.shape[-2]
     a = alphas.view(S, *([1] * u.dim()))
-    base = (u.unsqueeze(0) + a * k.movedim(0, -2)).movedim(-2, 0)  # (T, S, *B, m): û_t + α k_t
-    x_tm = x.movedim(-2, 0)
-    lo_tm = None if lo is None else lo.movedim(-2, 0)
-    hi_tm = None if hi is None else hi.movedim(-2, 0)
+    ff = u if K is None else u - (K.movedim(0, -3) @ x[..., :T, :].unsqueeze(-1)).squeeze(-1)
+    # (T, S, *B, m): û_t - K_t x̂_t + α k_t, so that u_t = that + K_t x_t
+    base = (ff.unsqueeze(0) + a * k.movedim(0, -2)).movedim(-2, 0).unbind(0)
+    lo_tm = None if lo is None else lo.movedim(-2, 0).unbind(0)
+    hi_tm = None if hi is None else hi.movedim(-2, 0).unbind(0)
+    Kt = None if K is None else (K[..., 0, :].unbind(0) if K.shape[-2] == 1 else K.unbind(0))
     xt = x0.expand(S, *x0.shape)
     xs, us = [xt], []
     for t in range(T):
         ut = base[t]
-        if K is not None:
-            ut = ut + (K[t] @ (xt - x_tm[t]).unsqueeze(-1)).squeeze(-1)
+        if Kt is not None:
+            if K.shape[-2] == 1:
+                ut = ut + (Kt[t] * xt).sum(-1, keepdim=True)
+            else:
+                ut = ut + (Kt[t] @ xt.unsqueeze(-1)).squeeze(-1)
         if lo_tm is not None:
             ut = torch.clamp(ut, lo_tm[t], hi_tm[t])
         us.append(ut)

@@ -20,7 +20,8 @@ it is the same objective up to a constant (the extra control ``u_T`` only costs 
 the optimum).
 
 Prints one JSON object on stdout: ``{"mpc_pytorch": {...}, "pypose": {...}}`` with ``ok``, ``error``,
-``ms`` (median wall time of one solve), ``u`` ((B, T, m) nested lists) and anchor-specific notes.
+``ms`` (median wall time of one solve), ``u`` ((B, T, m) nested lists), ``x`` ((B, T+1, n), the anchor's own
+rollout) and anchor-specific notes.
 """
 
 from __future__ import annotations
@@ -166,11 +167,12 @@ def run_mpc_pytorch(d, repeats):
                            eps=float(d["eps"]), grad_method=GradMethods.ANALYTIC, exit_unconverged=False,
                            detach_unconverged=False, backprop=False, verbose=-1, n_batch=B)
         x, u, cost = ctrl(x0, QuadCost(C, c), dx)
-        return u
+        return x, u
 
-    ms, u = _median_ms(solve, repeats)
+    ms, (x, u) = _median_ms(solve, repeats)
     u = u[:T].permute(1, 0, 2).contiguous()  # (B, T, m), batch first
-    return {"ok": True, "error": None, "ms": ms, "u": u.tolist(),
+    x = x[: T + 1].permute(1, 0, 2).contiguous()  # (B, T+1, n): its own rollout x_0 .. x_T
+    return {"ok": True, "error": None, "ms": ms, "u": u.tolist(), "x": x.tolist(),
             "note": f"lqr_iter={int(d['lqr_iter'])}, eps={float(d['eps'])}, T_a=T+1, analytic Jacobians"}
 
 
