@@ -161,6 +161,10 @@ def compose(X1: torch.Tensor, X2: torch.Tensor) -> torch.Tensor:
     check_tensor(X1, (4, 4), "X1", "se3.compose")
     check_tensor(X2, (4, 4), "X2", "se3.compose")
     check_same_device("se3.compose", X1=X1, X2=X2)
+    if torch.compiler.is_compiling():
+        # inductor fuses this broadcast product-sum into one loop; a batched matmul of tiny matrices
+        # stays an opaque, per-matrix library call
+        return (X1.unsqueeze(-1) * X2.unsqueeze(-3)).sum(-2)
     return torch.matmul(X1, X2)
 
 

@@ -161,6 +161,9 @@ def _soa(x: torch.Tensor, k: int) -> tuple[torch.Tensor, ...]:
     One transposing copy up front makes every following elementwise op run on contiguous memory,
     which is several times faster than operating on strided component views.
     """
+    if torch.compiler.is_compiling():
+        # inductor fuses the whole kernel into one loop: strided reads are free there, a copy is not
+        return x.reshape(-1, k).unbind(-1)
     return x.reshape(-1, k).t().contiguous().unbind(0)
 
 
@@ -297,6 +300,10 @@ def compose(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     check_tensor(R1, (3, 3), "R1", "so3.compose")
     check_tensor(R2, (3, 3), "R2", "so3.compose")
     check_same_device("so3.compose", R1=R1, R2=R2)
+    if torch.compiler.is_compiling():
+        # inductor fuses this broadcast product-sum into one loop; a batched matmul of tiny matrices
+        # stays an opaque, per-matrix library call
+        return (R1.unsqueeze(-1) * R2.unsqueeze(-3)).sum(-2)
     return torch.matmul(R1, R2)
 
 
