@@ -38,6 +38,7 @@ still get the implicit formula at their last iterate and are flagged in ``status
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import math
 from collections.abc import Callable
@@ -736,7 +737,8 @@ def ilqr(
     x, u, K, kff, free, reason, iters, hist, mu = out
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
         x, u = _attach_implicit(problem, x0s, x, u, free, bs)
-    cost = problem.cost.evaluate(x, u).expand(bs)
+    with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
+        cost = problem.cost.evaluate(x, u).expand(bs)
     nanv = torch.full((), math.nan, **kw)
     b1 = bad.unsqueeze(-1).unsqueeze(-1)
     x = torch.where(b1, nanv, x)
