@@ -15,8 +15,9 @@ Algorithm 1 (all candidate step sizes rolled out at once, one accepted step size
   ``Q_uu``, and the rows of ``K_t`` of clamped controls are zero.
 * :attr:`ILQRMethod.BATCH` — Algorithm 4 (Eq. 87 / 108): the whole control sequence is one decision
   variable; the Gauss–Newton step uses the transfer matrix ``S_u`` (Appendix A, ``Δx = S_u Δu``, from
-  :func:`controllers.lifted.transfer_matrices`) and,
-  with control limits, a box QP over all ``T·m`` controls.
+  :func:`controllers.lifted.transfer_matrices`) and, with control limits, a box QP over all ``T·m``
+  controls.  (Open-loop Gauss–Newton converges more slowly than the recursive form on strongly
+  nonlinear problems, and may settle in another local minimum.)
 
 Both regularize ``Q_uu`` (resp. the Gauss–Newton matrix) Levenberg–Marquardt style, ``+ μ I`` with the
 per-element schedule of Tassa et al., stop per element on a small step (``‖Δu‖∞ ≤ tol (1 + ‖u‖∞)``,
