@@ -142,6 +142,29 @@ def _anchor_costs(prob, r: dict, ua: torch.Tensor, B: int, T: int, n: int) -> di
     return out
 
 
+def _single_element_record(name: str, prob, x0: torch.Tensor, T: int, opts, args, r: dict) -> dict:
+    """pypose's MPC on the first initial state alone (it fails on batches) against ours on the same one."""
+    from controllers.ilqr import ilqr
+
+    p1 = _problem(name, x0[:1], T)
+    s1 = ilqr(p1, grad="none", options=opts)
+    ms = time_ms(lambda: ilqr(p1, grad="none", options=opts), repeats=args.repeats, warmup=1)
+    rec = {"problem": f"{name} swing-up", "B": 1, "T": T, "n": p1.n, "m": p1.m, "dtype": "float32",
+           "pass": "fwd", "ours_ms": ms, "ours_cost": float(s1.cost[0]),
+           "converged": f"{int(s1.status.converged.sum())}/1", "anchor": "pypose MPC (B=1)"}
+    if not r.get("ok"):
+        return {**rec, "anchor": "pypose MPC (B=1): FAILED", "anchor_error": r.get("error"),
+                "anchor_ms": None, "speedup": None, "max_abs_diff_u": None, "anchor_cost": None}
+    ua = torch.tensor(r["u"], dtype=torch.float32).reshape(1, T, p1.m)
+    xa = torch.tensor(r["x"], dtype=torch.float32).reshape(1, T + 1, p1.n)
+    # its own trajectory and its own (limit-violating) controls
+    if (r.get("bound_violation") or 0.0) > 1e-6:
+        rec["anchor"] = "pypose MPC (B=1, limits violated)"
+    return {**rec, "anchor_ms": r["ms"], "speedup": r["ms"] / ms,
+            "max_abs_diff_u": float((ua - s1.u).abs().max()),
+            "anchor_cost": float(p1.cost.evaluate(xa, ua)[0]), "anchor_note": r.get("note")}
+
+
 def _grad_check(name: str, B: int, T: int, seed: int, max_iter: int) -> dict:
     """d(Σ cost)/d(length) by the implicit gradient and by central finite differences (float64)."""
     from controllers.ilqr import ILQROptions, ilqr
@@ -209,6 +232,9 @@ def run(args) -> int:
                 if r.get("note"):
                     rec["anchor_note"] = r["note"]
                 records.append(rec)
+            r1 = out.get("pypose_b1")
+            if r1 is not None:
+                records.append(_single_element_record(name, prob, x0, T, opts, args, r1))
     # forward + backward (implicit gradient w.r.t. the pendulum length) at the target size
     if "pendulum" in args.problems:
         x0 = torch.as_tensor(_x0("pendulum", B, args.seed))
