@@ -255,19 +255,25 @@ def _forward(F: torch.Tensor, Kt: torch.Tensor, x0t: torch.Tensor, T: int
     """Closed-loop rollout ``u_t = K̃_t x̃_t``, ``x̃_{t+1} = F̃_x̃ x̃_t + F̃_u u_t``: ``(x̃ (Bt, T+1, n+1),
     u (Bt, T, m))``, written into preallocated buffers (no graph)."""
     Bt, m, n1 = Kt.shape[0], Kt.shape[-2], Kt.shape[-1]
-    xs = torch.empty(Bt, T + 1, n1, 1, dtype=Kt.dtype, device=Kt.device)
-    us = torch.empty(Bt, T, m, 1, dtype=Kt.dtype, device=Kt.device)
     shared = F.shape[0] == 1
     tv = F.shape[1] > 1
+    if not shared:
+        # z_t = [u_t; x̃_t] in one buffer: two products per step, written in place
+        Z = torch.empty(Bt, T + 1, m + n1, 1, dtype=Kt.dtype, device=Kt.device)
+        Z[:, 0, m:] = x0t.unsqueeze(-1)
+        for t in range(T):
+            torch.bmm(Kt[:, t], Z[:, t, m:], out=Z[:, t, :m])
+            torch.bmm(F[:, t if tv else 0], Z[:, t], out=Z[:, t + 1, m:])
+        Z = Z.squeeze(-1)
+        return Z[:, :, m:], Z[:, :T, :m]
+    xs = torch.empty(Bt, T + 1, n1, 1, dtype=Kt.dtype, device=Kt.device)
+    us = torch.empty(Bt, T, m, 1, dtype=Kt.dtype, device=Kt.device)
     x = x0t.unsqueeze(-1)
     xs[:, 0] = x
     for t in range(T):
-        Ft = F[:, t if tv else 0]
+        Ft = F[0, t if tv else 0]
         u = torch.bmm(Kt[:, t], x)
-        if shared:
-            x = torch.matmul(Ft[0, :, m:], x) + torch.matmul(Ft[0, :, :m], u)
-        else:
-            x = torch.baddbmm(torch.bmm(Ft[:, :, m:], x), Ft[:, :, :m], u)
+        x = torch.matmul(Ft[:, m:], x) + torch.matmul(Ft[:, :m], u)
         us[:, t] = u
         xs[:, t + 1] = x
     return xs.squeeze(-1), us.squeeze(-1)
