@@ -326,3 +326,27 @@ def test_residual_cost_reaching_task_eq_102_108():
         sm = ilqr(problem(mu.detach() - e), grad="none", options=TIGHT)
         fd = float((sp.cost.sum() + sp.u.sum()) - (sm.cost.sum() + sm.u.sum())) / (2 * h)
         assert abs(float(g.view(-1)[i]) - fd) < 1e-5 * max(1.0, abs(fd))
+
+
+def test_implicit_gradients_on_lq_problem_equal_riccati_gradients():
+    # on an LQ problem the iLQR solution is the LQR solution, and so must be its derivatives w.r.t. every
+    # problem tensor (compared with the Riccati solver's own implicit backward)
+    dyn, cost, x0, T, _, _ = _linear_problem(seed=3, B=2, T=5)
+    leaves = [t.detach().clone().requires_grad_(True) for t in (dyn.A, dyn.B, dyn.c, cost.Q, cost.x_ref, x0)]
+
+    def build(A, B, c, Q, x_ref, x0):
+        qc = QuadraticCost(Q=Q, R=cost.R, N=cost.N, x_ref=x_ref, u_ref=cost.u_ref)
+        return LinearDynamics(A, B, c), qc, x0
+
+    w = torch.linspace(-1, 1, T * 2, dtype=D64).view(1, T, 2)
+    d1, c1, z1 = build(*leaves)
+    s1 = ilqr(ILQRProblem(d1, c1, z1, T), options=TIGHT)
+    g1 = torch.autograd.grad((s1.u * w).sum() + s1.x.sum() + s1.cost.sum(), leaves)
+    d2, c2, z2 = build(*leaves)
+    s2 = riccati.solve(LQProblem(d2, c2, z2))
+    g2 = torch.autograd.grad((s2.u * w).sum() + s2.x.sum() + s2.cost.sum(), leaves)
+    for i, (a, b) in enumerate(zip(g1, g2)):
+        if i == 3:  # Q: the cost sees only its symmetric part, compare the symmetric parts of the gradients
+            a, b = 0.5 * (a + a.mT), 0.5 * (b + b.mT)
+            assert float((g1[3] - g1[3].mT).abs().max()) < 1e-12  # ours is symmetric already
+        torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-8)
