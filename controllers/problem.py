@@ -206,6 +206,7 @@ class LinearDynamics:
     A: torch.Tensor
     B: torch.Tensor
     c: torch.Tensor | None = None
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         own = "LinearDynamics"
@@ -267,6 +268,16 @@ class LinearDynamics:
         A, B, c = time_slice(self.A, t, 2), time_slice(self.B, t, 2), time_slice(self.c, t, 1)
         y = (A @ x.unsqueeze(-1) + B @ u.unsqueeze(-1)).squeeze(-1)
         return y if c is None else y + c
+
+    def finite_mask(self) -> torch.Tensor:
+        """``(*B,)`` bool: A, B, c finite for the element (computed once, the dynamics are immutable)."""
+        if "finite" not in self._cache:
+            fin = torch.ones((), dtype=torch.bool, device=self.device)
+            for v, d in ((self.A, 3), (self.B, 3), (self.c, 2)):
+                if v is not None:
+                    fin = fin & torch.isfinite(v.detach()).flatten(-d).all(-1)
+            self._cache["finite"] = fin
+        return self._cache["finite"]
 
     def expand_time(self, T: int) -> LinearDynamics:
         """Same dynamics with every field expanded (a view) to ``T`` time steps."""
@@ -680,12 +691,7 @@ class LQProblem:
         bs = self.batch_shape
         reason = torch.zeros(bs, dtype=torch.int64, device=self.device)
         fin = torch.isfinite(self.x0.detach()).all(-1).expand(bs)
-        tr = {"A": 3, "B": 3, "c": 2}
-        for k, d in tr.items():
-            v = getattr(self.dynamics, k)
-            if v is not None:
-                fin = fin & torch.isfinite(v.detach()).flatten(-d).all(-1).expand(bs)
-        fin = fin & self.cost.finite_mask().expand(bs)
+        fin = fin & self.dynamics.finite_mask().expand(bs) & self.cost.finite_mask().expand(bs)
         if self.cost.Q.dim() > 3 or self.cost.R.dim() > 3:
             definite = self.cost.definite_mask().expand(bs)
             reason = torch.where(definite, reason, int(Reason.NOT_POSITIVE_DEFINITE))
