@@ -492,7 +492,6 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
     bot = torch.cat([torch.zeros(1, n, **kw), torch.ones(1, 1, **kw)], -1).expand(*bs, 1, n + 1)
     eye_m = torch.eye(m, **kw)
     mu_I = mu[..., None, None] * eye_m
-    one = torch.ones((), **kw)
     u_sl = slice(n, n + m)
     Ks, ks, frees, goods, Qus, Quus = [None] * T, [None] * T, [None] * T, [], [None] * T, [None] * T
     Hs, Fs = H.unbind(0), F.unbind(0)
@@ -505,13 +504,13 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
         if scalar:
             # one control: the box QP is a clip and the factorization a division
             quu, qu, qux = Q[..., n, n], Q[..., n, -1], Q[..., n, :n]
+            # (h ≤ 0 only harms its own element, which the check after the loop then flags)
             h = quu + mu
-            good = h > 0
-            h = torch.where(good, h, one)
+            good = h
             kraw = -qu / h
             if lo is None:
                 k = kraw
-                free = good | True
+                free = torch.ones_like(kraw, dtype=torch.bool)
                 K = qux * (-1.0 / h).unsqueeze(-1)
             else:
                 k = torch.clamp(kraw, los[t], his[t])
@@ -539,7 +538,8 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
             row = torch.cat([K, k.unsqueeze(-1)], -1)
         M = torch.cat([top, row, bot], -2)  # (*B, n+m+1, n+1)
         V = M.mT @ Q @ M
-        V = 0.5 * (V + V.mT)
+        if t % 8 == 0:  # M̃ᵀQ̃M̃ is symmetric up to round-off; re-symmetrize now and then
+            V = 0.5 * (V + V.mT)
         Ks[t], ks[t], frees[t], Qus[t], Quus[t] = K, k, free, Qu, Quu
         goods.append(good)
     if scalar:  # per-step values were kept without their singleton control dim
@@ -551,7 +551,9 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
         ks_, Ks_, frees_ = torch.stack(ks), torch.stack(Ks), torch.stack(frees)
         dV1 = (ks_ * torch.stack(Qus)).sum((0, -1))
         dV2 = 0.5 * (ks_ * (torch.stack(Quus) @ ks_.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
-    ok = torch.stack(goods).all(0)
+    ok = torch.stack(goods).gt(0).all(0) if scalar else torch.stack(goods).all(0)
+    if scalar:
+        ok = ok & torch.isfinite(ks_).all(0).squeeze(-1)
     return _Backward(Ks_, ks_, frees_, ok, dV1, dV2)
 
 
