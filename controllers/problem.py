@@ -149,6 +149,12 @@ def _check_time(sizes: dict[str, int], want: int, owner: str, what: str) -> None
             raise ValueError(f"{owner}: field '{name}' has {s} time steps, expected 1 or {want} ({what})")
 
 
+def _versions(*tensors: torch.Tensor | None) -> tuple:
+    """In-place version counters of the tensors: part of every cache key, so that a cached quantity is
+    recomputed after its data changed in place (e.g. an ``nn.Parameter`` after an optimizer step)."""
+    return tuple(-1 if v is None else v._version for v in tensors)
+
+
 def time_slice(x: torch.Tensor | None, t: int, k: int) -> torch.Tensor | None:
     """Entry ``t`` of a timed tensor with ``k`` trailing dims (a time dim of 1 broadcasts)."""
     if x is None:
@@ -270,14 +276,16 @@ class LinearDynamics:
         return y if c is None else y + c
 
     def finite_mask(self) -> torch.Tensor:
-        """``(*B,)`` bool: A, B, c finite for the element (computed once, the dynamics are immutable)."""
-        if "finite" not in self._cache:
+        """``(*B,)`` bool: A, B, c finite for the element (cached; recomputed after in-place changes)."""
+        key = ("finite", _versions(self.A, self.B, self.c))
+        if key not in self._cache:
             fin = torch.ones((), dtype=torch.bool, device=self.device)
             for v, d in ((self.A, 3), (self.B, 3), (self.c, 2)):
                 if v is not None:
                     fin = fin & torch.isfinite(v.detach()).flatten(-d).all(-1)
-            self._cache["finite"] = fin
-        return self._cache["finite"]
+            self._cache.clear()
+            self._cache[key] = fin
+        return self._cache[key]
 
     def expand_time(self, T: int) -> LinearDynamics:
         """Same dynamics with every field expanded (a view) to ``T`` time steps."""
@@ -571,25 +579,37 @@ class QuadraticCost:
     def definite_mask(self) -> torch.Tensor:
         """``(*B,)`` bool: Q_t ⪰ 0 and R_t ≻ 0 at every time step of each batch element.
 
-        Computed once per cost object and cached (the cost is immutable).
+        Computed once per cost object and cached (recomputed if a field was modified in place).
         """
-        if "definite" not in self._cache:
+        key = ("definite", _versions(self.Q, self.R))
+        if key not in self._cache:
             okQ = _psd_mask(self.Q, strict=False).all(-1)
             okR = _psd_mask(self.R, strict=True).all(-1)
-            self._cache["definite"] = okQ & okR
-        return self._cache["definite"]
+            self._evict(key[0])
+            self._cache[key] = okQ & okR
+        return self._cache[key]
 
     def finite_mask(self) -> torch.Tensor:
         """``(*B,)`` bool: every field of the element is finite (cached like :meth:`definite_mask`)."""
-        if "finite" not in self._cache:
+        key = ("finite", self.versions())
+        if key not in self._cache:
             trc = {"Q": 3, "R": 3, "x_ref": 2, "u_ref": 2, "N": 3, "q": 2, "r": 2}
             fin = torch.ones((), dtype=torch.bool, device=self.device)
             for k, d in trc.items():
                 v = getattr(self, k)
                 if v is not None:
                     fin = fin & torch.isfinite(v.detach()).flatten(-d).all(-1)
-            self._cache["finite"] = fin
-        return self._cache["finite"]
+            self._evict(key[0])
+            self._cache[key] = fin
+        return self._cache[key]
+
+    def _evict(self, kind: str) -> None:
+        for k in [k for k in self._cache if k[0] == kind]:
+            del self._cache[k]
+
+    def versions(self) -> tuple:
+        """In-place version counters of all fields (the key of the cached per-cost quantities)."""
+        return _versions(self.Q, self.R, self.x_ref, self.u_ref, self.N, self.q, self.r)
 
 
 def _expand_t(v: torch.Tensor | None, T: int, k: int) -> torch.Tensor | None:

@@ -411,8 +411,10 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
     stage = None
     if grad is GradMode.NONE:
         # the cost's expansion and stage matrices depend on the cost alone: cache them on the cost
-        key = ("stage", T, tuple(problem.batch_shape))
+        key = ("stage", T, tuple(problem.batch_shape), cost.versions())
         if key not in cost._cache:
+            for old in [k for k in cost._cache if k[0] == "stage" and k[1:3] == key[1:3]]:
+                del cost._cache[old]  # stale: the cost's data changed in place
             with torch.no_grad():
                 cc = cost.canonical(T)
                 C, VT = assemble_cost(cc.Q, cc.R, cc.N, cc.q, cc.r, T, problem.batch_shape)

@@ -235,3 +235,15 @@ def test_cost_expansion_cache_is_per_cost_and_batch_shape():
     p3 = dataclasses.replace(shared, x0=torch.randn(4, shared.n, dtype=D, generator=g))
     riccati.solve(shared, grad="none")
     torch.testing.assert_close(riccati.solve(p3, grad="none").u, lifted.solve_lifted(p3).u, atol=1e-9, rtol=0)
+
+
+def test_cache_follows_in_place_updates_of_the_cost():
+    """A cost whose tensors change in place (a parameter after an optimizer step) is re-expanded."""
+    g = torch.Generator().manual_seed(10)
+    p = random_problem(g, b=(2,), T=4)
+    riccati.solve(p, grad="none")
+    with torch.no_grad():
+        p.cost.x_ref.add_(1.0)
+        p.cost.R.mul_(3.0)
+    torch.testing.assert_close(riccati.solve(p, grad="none").u, lifted.solve_lifted(p).u, atol=1e-9, rtol=0)
+    assert sum(k[0] == "stage" for k in p.cost._cache) == 1
