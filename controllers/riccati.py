@@ -8,13 +8,15 @@ matrix ``C̃_t = [[R, Nᵀ, r], [N, Q, q], [rᵀ, qᵀ, 0]]`` (cost ``z_tᵀ C̃
 conventions) each step is::
 
     H    = C̃_t + F̃_tᵀ Ṽ_{t+1} F̃_t                       (Eq. 73 with the augmented state)
-    L Lᵀ = H_uu                                          (batched Cholesky, never an inverse)
     K̃_t  = -H_uu⁻¹ H_ux̃ = [K_t, k_t]                     (Eq. 74 / 78, here u_t = K_t x_t + k_t)
-    Ṽ_t  = H_x̃x̃ + H_x̃u K̃_t                                (Eq. 75)
+    Ṽ_t  = H_x̃x̃ + H_x̃u K̃_t                                (Eq. 75, the Schur complement of H_uu)
 
 and ``Ṽ_t = [[P_t, p_t], [p_tᵀ, s_t]]`` is the value function ``x̃ᵀ Ṽ_t x̃``; the optimal cost is
-``x̃_0ᵀ Ṽ_0 x̃_0``.  The forward pass runs the closed loop ``x̃_{t+1} = (F̃_x̃ + F̃_u K̃_t) x̃_t`` with the
-closed-loop matrices formed for all steps at once.
+``x̃_0ᵀ Ṽ_0 x̃_0``.  No inverse is formed: ``H_uu⁻¹ H_ux̃`` and the Schur complement come together from
+``m`` Gauss-Jordan pivots on ``H`` applied as batched elementwise updates (cheaper than per-matrix
+LAPACK calls for small ``m``; positive pivots certify ``H_uu ≻ 0`` per element), and the unrolled path
+uses a batched Cholesky factorization.  The forward pass runs the closed loop
+``u_t = K̃_t x̃_t``, ``x̃_{t+1} = F̃_t [u_t; x̃_t]`` in place.
 
 Also here: the explicit augmented-state construction of seed Eq. 76-77 (:func:`augmented_lqt`) and the
 least-squares recursive form Eq. 79-81 (:func:`ls_recursive_gains`), which accepts a full (non block
@@ -22,7 +24,8 @@ diagonal) trajectory precision matrix and control primitives ``u = Ψ w``.
 
 Entry point: :func:`solve` (an :class:`~controllers.problem.LQProblem` in, an
 :class:`~controllers.problem.LQSolution` out), with ``grad="implicit"`` (default, the backward pass of
-:mod:`controllers.implicit`) or ``grad="unrolled"`` (autograd through the recursion).
+:mod:`controllers.implicit`), ``grad="unrolled"`` (autograd through the recursion) or ``grad="none"``;
+:func:`lqr` is the same on plain canonical tensors (used by iLQR).
 """
 
 from __future__ import annotations
