@@ -402,8 +402,8 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
 
     Returns:
         :class:`LQSolution` with ``x``, ``u``, gains ``K``/``k`` (``u_t = K_t x_t + k_t``), the optimal
-        cost (references included) and per-element status: ``SINGULAR_QUU`` where the Cholesky
-        factorization of ``H_uu`` failed, input failures from :meth:`LQProblem.input_status`.  A failed
+        cost (references included) and per-element status: ``SINGULAR_QUU`` where ``H_uu`` was not
+        positive definite at some step, input failures from :meth:`LQProblem.input_status`.  A failed
         element never changes the others (every operation is per element).
     """
     if not isinstance(problem, LQProblem):
