@@ -210,9 +210,10 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
         C = C.expand(Bt, *C.shape[1:])
     C0 = C[:, 0]
     elim = _fused_eliminate() if fused else None
-    # H is a fresh tensor at every step, so the gains and value matrices are kept as views of it
-    Ks, Vs, Huus = [], [V], []
+    # H is a fresh tensor at every step: the value matrices are kept as views of it (gradient mode only)
+    Vs, Huus = [V], []
     pivbuf = torch.empty(Bt, T, m, 1, 1, dtype=dt, device=dev)
+    Kt = torch.empty(Bt, T, m, n1, dtype=dt, device=dev)
     for t in range(T - 1, -1, -1):
         Ft = (F[0, t] if shared_F else F[:, t]) if tvF else F0
         Ct = C[:, t] if tvC else C0
@@ -225,21 +226,20 @@ def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt
         if fused:
             S, V, inv = elim(H, E, m)
             pivbuf[:, t] = inv.reshape(Bt, m, 1, 1)
-            Ks.append(S)
+            torch.neg(S, out=Kt[:, t])
         else:
             for i in range(m):
                 inv = torch.reciprocal(H[:, i:i + 1, i:i + 1], out=pivbuf[:, t, i])
                 r = H[:, i:i + 1, :] * inv
                 H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
             V = H[:, m:, m:]
-            Ks.append(H[:, :m, m:])
-        Vs.append(V)
-    Ks.reverse()
+            torch.neg(H[:, :m, m:], out=Kt[:, t])
+        if keep_huu:
+            Vs.append(V)
     Vs.reverse()
     piv = pivbuf.reshape(Bt, T, m)
     ok = (piv > 0).all(-1) & torch.isfinite(piv).all(-1)
-    Kt = torch.stack(Ks, 1).neg_()
-    Vst = torch.stack(Vs, 1) if keep_huu else torch.stack([Vs[0], Vs[-1].expand(Bt, n1, n1)], 1)
+    Vst = torch.stack(Vs, 1) if keep_huu else torch.stack([V, VT.expand(Bt, n1, n1)], 1)
     Huu = torch.stack(Huus[::-1], 1) if keep_huu else None
     return RiccatiFactors(Kt=Kt, Huu=Huu, V=Vst, ok=ok)
 
