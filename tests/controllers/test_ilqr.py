@@ -350,3 +350,17 @@ def test_implicit_gradients_on_lq_problem_equal_riccati_gradients():
             a, b = 0.5 * (a + a.mT), 0.5 * (b + b.mT)
             assert float((g1[3] - g1[3].mT).abs().max()) < 1e-12  # ours is symmetric already
         torch.testing.assert_close(a, b, atol=1e-8, rtol=1e-8)
+
+
+@pytest.mark.parametrize("method", ["recursive", "batch"])
+def test_multi_dim_batch_equals_flattened(method):
+    g = torch.Generator().manual_seed(5)
+    x0 = 0.3 * torch.randn(2, 3, 2, generator=g, dtype=D64)
+    length = torch.tensor([[0.8, 1.0, 1.2], [0.9, 1.1, 1.3]], dtype=D64, requires_grad=True)
+    a = ilqr(_pendulum_problem(x0, length=length, T=8, umax=1.5), method=method)
+    b = ilqr(_pendulum_problem(x0.reshape(6, 2), length=length.reshape(6), T=8, umax=1.5), method=method)
+    assert a.u.shape == (2, 3, 8, 1) and a.status.converged.shape == (2, 3)
+    torch.testing.assert_close(a.u.reshape(6, 8, 1), b.u, atol=1e-12, rtol=0)
+    ga = torch.autograd.grad(a.cost.sum(), length)[0]
+    gb = torch.autograd.grad(b.cost.sum(), length)[0]
+    torch.testing.assert_close(ga, gb, atol=1e-10, rtol=1e-10)
