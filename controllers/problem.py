@@ -164,14 +164,15 @@ def time_slice(x: torch.Tensor | None, t: int, k: int) -> torch.Tensor | None:
 
 
 def _symmetric(M: torch.Tensor, name: str, owner: str) -> None:
-    scale = M.detach().abs().amax().clamp_min(1.0)
-    tol = (1e3 * torch.finfo(M.dtype).eps) * scale
-    asym = (M.detach() - M.detach().mT).abs()
-    # NaN entries are the business of the per-element non-finite check, not of the symmetry check
-    if bool((asym > tol).any()):
+    Md = M.detach()
+    # one scalar per check (NaN entries are the non-finite check's business: NaN > tol is False)
+    asym = float(torch.sub(Md, Md.mT).abs_().amax()) if Md.numel() else 0.0
+    if not asym > 0.0:
+        return
+    scale = max(float(Md.abs().amax()), 1.0)
+    if asym > 1e3 * torch.finfo(M.dtype).eps * scale:
         raise ValueError(f"{owner}: field '{name}' must be symmetric (max |{name} - {name}ᵀ| = "
-                         f"{float(asym.nan_to_num(0.0).amax()):.3g}); "
-                         f"symmetrize it with ({name} + {name}ᵀ)/2")
+                         f"{asym:.3g}); symmetrize it with ({name} + {name}ᵀ)/2")
 
 
 def _psd_mask(M: torch.Tensor, strict: bool) -> torch.Tensor:

@@ -420,9 +420,13 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
                 del cost._cache[old]  # stale: the cost's data changed in place
             with torch.no_grad():
                 cc = cost.canonical(T)
-                C, VT = assemble_cost(cc.Q, cc.R, cc.N, cc.q, cc.r, T, problem.batch_shape)
-                # time-major storage (a view with the usual shape): C[:, t] is then one contiguous block
-                C = C.transpose(0, 1).contiguous().transpose(0, 1)
+                cost._cache[key] = (cc, assemble_cost(cc.Q, cc.R, cc.N, cc.q, cc.r, T, problem.batch_shape))
+        else:
+            cc, (C, VT) = cost._cache[key]
+            if C.shape[0] > 1 and C.shape[1] > 1 and C.stride(0) != C.shape[-1] ** 2:
+                # re-used: store the stage matrices time-major (C[:, t] then one contiguous block)
+                with torch.no_grad():
+                    C = C.transpose(0, 1).contiguous().transpose(0, 1)
                 cost._cache[key] = (cc, (C, VT))
         cc, stage = cost._cache[key]
     else:
