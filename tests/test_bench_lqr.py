@@ -14,9 +14,11 @@ MPC_PY = Path(__file__).resolve().parents[1] / ".venv-mpc" / "bin" / "python"
 
 def _check(records, anchors):
     assert {r["anchor"] for r in records} == set(anchors) | {"ours-float64"}
+    assert {"lqr", "lqr-cold"} <= {r["problem"] for r in records}
     for r in records:
         assert set(r) == KEYS
-        assert r["problem"] in ("lqr", "lqr-fused") and (r["B"], r["T"], r["n"], r["m"]) == (4, 6, 3, 2)
+        assert r["problem"] in ("lqr", "lqr-cold", "lqr-fused")
+        assert (r["B"], r["T"], r["n"], r["m"]) == (4, 6, 3, 2)
         assert r["ours_ms"] > 0
         if r["anchor"] == "ours-float64" or r["pass"] == "fwd":
             # the anchor's forward ran: same optimal controls (float32 round-off only)
@@ -48,4 +50,4 @@ def test_missing_mpc_environment_is_reported_not_raised(tmp_path):
     records = bench.run_bench(B=4, T=6, n=3, m=2, repeats=1, anchors=("mpc",),
                               mpc_python=str(tmp_path / "nope" / "python"))
     bad = [r for r in records if r["anchor"] == "mpc.pytorch"]
-    assert len(bad) == 2 and all(r["anchor_ms"].startswith("missing") for r in bad)
+    assert len(bad) == 4 and all(r["anchor_ms"].startswith("missing") for r in bad)  # 2 passes x 2 variants

@@ -17,9 +17,12 @@ Each solver is timed as the median of ``--repeats`` runs after warm-up; the in-p
 pypose) are timed interleaved, round after round, so load changes on a shared machine hit all alike.
 Problem objects are built once, outside the timed region, for every solver (our per-element cost checks
 are cached on the cost object).
-Records with ``problem = "lqr"`` time the default eager solver, ``"lqr-fused"`` the same solver with
-``fused=True`` (each Riccati step's pivot updates as one ``torch.compile``'d kernel; compiled during
-warm-up).  The ``ours-float64`` rows give our float32 controls' distance to our float64 solution.
+Records with ``problem = "lqr"`` time the default eager solver on a problem object built once (as the
+anchors' modules are; an MPC loop re-solving with the same cost works this way), ``"lqr-cold"`` the
+same with fresh problem objects built inside every timed call (construction, per-element validity
+checks and the cost expansion included), ``"lqr-fused"`` the warm solver with ``fused=True`` (each
+Riccati step's pivot updates as one ``torch.compile``'d kernel; compiled during warm-up).
+The ``ours-float64`` rows give our float32 controls' distance to our float64 solution.
 """
 
 from __future__ import annotations
@@ -107,8 +110,12 @@ def _ours_problem(inp: dict[str, torch.Tensor]):
                      QuadraticCost(inp["Q"], inp["R"], N=inp["N"], q=inp["q"], r=inp["r"]), inp["x0"])
 
 
-def _bench_ours(prob, dtype, fused=False):
-    """Our solver's timed callables ``{"fwd": fn, "fwd+bwd": fn}`` and controls (float32 and float64)."""
+def _bench_ours(prob, dtype, fused=False, cold=False):
+    """Our solver's timed callables ``{"fwd": fn, "fwd+bwd": fn}`` and controls (float32 and float64).
+
+    ``cold``: build fresh problem objects inside every timed call (validation, per-element checks and
+    the cost expansion are paid each time; nothing cached).
+    """
     from controllers import riccati
 
     inp = _ours_inputs(prob, dtype)
@@ -120,13 +127,17 @@ def _bench_ours(prob, dtype, fused=False):
     problem_g = _ours_problem(leaves)
 
     def fwdbwd():
-        s = riccati.solve(problem_g, fused=fused)
+        s = riccati.solve(_ours_problem(leaves) if cold else problem_g, fused=fused)
         (s.u.sum() + s.x.sum()).backward()
+
+    if cold:
+        fwd = lambda: riccati.solve(_ours_problem(inp), grad="none", fused=fused)
+    else:
+        fwd = lambda: riccati.solve(problem, grad="none", fused=fused)
 
     # float64 reference for the accuracy column
     sol64 = riccati.solve(_ours_problem(_ours_inputs(prob, torch.float64)), grad="none")
-    return {"fns": {"fwd": lambda: riccati.solve(problem, grad="none", fused=fused), "fwd+bwd": fwdbwd},
-            "u": sol.u.double(), "u64": sol64.u}
+    return {"fns": {"fwd": fwd, "fwd+bwd": fwdbwd}, "u": sol.u.double(), "u64": sol64.u}
 
 
 # --------------------------------------------------------------------------------------------------
@@ -289,7 +300,7 @@ def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads
         torch.set_num_threads(threads)
     dt = getattr(torch, dtype)
     prob = make_problem(B, T, n, m, seed)
-    variants = {"lqr": _bench_ours(prob, dt)}
+    variants = {"lqr": _bench_ours(prob, dt), "lqr-cold": _bench_ours(prob, dt, cold=True)}
     if fused:
         try:
             variants["lqr-fused"] = _bench_ours(prob, dt, fused=True)
