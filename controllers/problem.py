@@ -175,6 +175,16 @@ def _symmetric(M: torch.Tensor, name: str, owner: str) -> None:
                          f"{asym:.3g}); symmetrize it with ({name} + {name}ᵀ)/2")
 
 
+def _all_finite(v: torch.Tensor, k: int) -> torch.Tensor:
+    """``(...)`` bool over the leading dims: all of the last ``k`` dims finite.  ``max |v|`` is NaN or inf
+    exactly when an entry is (amax propagates NaN), and is several times cheaper than ``isfinite().all()``."""
+    v = v.detach()
+    if k == 0:
+        return torch.isfinite(v)
+    return torch.isfinite(v.flatten(-k).abs().amax(-1)) if v.numel() else torch.ones(
+        v.shape[:v.dim() - k], dtype=torch.bool, device=v.device)
+
+
 def _psd_mask(M: torch.Tensor, strict: bool) -> torch.Tensor:
     """``(...)`` bool over the leading dims: M ⪰ 0 (``strict``: M ≻ 0) up to a dtype tolerance.
 
@@ -183,9 +193,10 @@ def _psd_mask(M: torch.Tensor, strict: bool) -> torch.Tensor:
     pass.  Non-finite matrices are reported as definite here (they are the non-finite check's business).
     """
     Md = M.detach()
-    finite = torch.isfinite(Md).flatten(-2).all(-1)
+    finite = _all_finite(Md, 2)
     eye = torch.eye(Md.shape[-1], dtype=Md.dtype, device=Md.device)
-    Md = torch.where(finite[..., None, None], Md, eye)
+    if not bool(finite.all()):
+        Md = torch.where(finite[..., None, None], Md, eye)
     if not strict:
         scale = Md.diagonal(dim1=-2, dim2=-1).abs().amax(-1).clamp_min(1.0)
         Md = Md + (1e2 * torch.finfo(Md.dtype).eps * Md.shape[-1] * scale)[..., None, None] * eye
@@ -283,7 +294,7 @@ class LinearDynamics:
             fin = torch.ones((), dtype=torch.bool, device=self.device)
             for v, d in ((self.A, 3), (self.B, 3), (self.c, 2)):
                 if v is not None:
-                    fin = fin & torch.isfinite(v.detach()).flatten(-d).all(-1)
+                    fin = fin & _all_finite(v, d)
             self._cache.clear()
             self._cache[key] = fin
         return self._cache[key]
@@ -599,7 +610,7 @@ class QuadraticCost:
             for k, d in trc.items():
                 v = getattr(self, k)
                 if v is not None:
-                    fin = fin & torch.isfinite(v.detach()).flatten(-d).all(-1)
+                    fin = fin & _all_finite(v, d)
             self._evict(key[0])
             self._cache[key] = fin
         return self._cache[key]
@@ -711,7 +722,7 @@ class LQProblem:
         """``(*B,)`` int64 :class:`Reason` codes from the inputs alone (non-finite data, bad definiteness)."""
         bs = self.batch_shape
         reason = torch.zeros(bs, dtype=torch.int64, device=self.device)
-        fin = torch.isfinite(self.x0.detach()).all(-1).expand(bs)
+        fin = _all_finite(self.x0, 1).expand(bs)
         fin = fin & self.dynamics.finite_mask().expand(bs) & self.cost.finite_mask().expand(bs)
         if self.cost.Q.dim() > 3 or self.cost.R.dim() > 3:
             definite = self.cost.definite_mask().expand(bs)
