@@ -40,7 +40,8 @@ def test_bench_lqr_pypose_smoke(tmp_path):
     _check(json.loads(out.read_text()), ["pypose", "plain-riccati"])
 
 
-@pytest.mark.skipif(not MPC_PY.exists(), reason="no .venv-mpc with mpc.pytorch")
+@pytest.mark.skipif(not MPC_PY.exists(),
+                    reason="no mpc.pytorch anchor environment .venv-mpc (`make bench-env` creates it)")
 def test_bench_lqr_mpc_anchor_smoke():
     records = bench.run_bench(B=4, T=6, n=3, m=2, repeats=1, anchors=("mpc",))
     _check(records, ["mpc.pytorch"])
