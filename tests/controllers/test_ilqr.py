@@ -18,14 +18,6 @@ D64 = torch.float64
 TIGHT = ILQROptions(max_iter=100, tol=1e-12, tol_cost=0.0)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # tiny batched kernels are much faster single-threaded on a shared CPU; restored afterwards
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _linear_problem(seed=0, B=3, T=6, n=3, m=2, limits=None):
     g = torch.Generator().manual_seed(seed)

@@ -17,13 +17,6 @@ D64 = torch.float64
 TIGHT = ILQROptions(max_iter=100, tol=1e-12, tol_cost=0.0)
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _policy(T=10, umax=5.0, dtype=D64, system=None, options=TIGHT):
     return MPCPolicy(system or Pendulum(dt=0.05, damping=0.1), T, torch.tensor([1.0, 0.1], dtype=dtype),
