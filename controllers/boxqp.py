@@ -129,6 +129,10 @@ def box_qp(
         raise TypeError(f"box_qp: H and g must share one floating dtype, got {H.dtype} and {g.dtype}")
     dtype, device = H.dtype, H.device
     batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1])
+    for name, v in (("lower", lower), ("upper", upper), ("x0", x0)):
+        if isinstance(v, torch.Tensor) and (v.dtype != dtype or v.device != device):
+            raise TypeError(f"box_qp: argument '{name}' must have H's dtype and device ({dtype}, {device}), "
+                            f"got {v.dtype} on {v.device}; convert it explicitly (nothing is cast silently)")
     lo = torch.as_tensor(lower, dtype=dtype, device=device)
     hi = torch.as_tensor(upper, dtype=dtype, device=device)
     try:
@@ -144,7 +148,7 @@ def box_qp(
     if x0 is not None:
         if x0.shape[-1] != m:
             raise ValueError(f"box_qp: x0 must have shape (*B, {m}), got {tuple(x0.shape)}")
-        x0 = x0.to(dtype).expand(*batch, m)
+        x0 = x0.expand(*batch, m)
     eps = torch.finfo(dtype).eps
     tol = eps ** 0.5 if tol is None else tol
     min_rel_improve = 10 * eps if min_rel_improve is None else min_rel_improve

@@ -49,7 +49,14 @@ import torch
 from torch import Tensor
 
 from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
-from controllers.problem import LinearDynamics, NonlinearDynamics, QuadraticCost, Reason, SolverStatus
+from controllers.problem import (
+    LinearDynamics,
+    NonlinearDynamics,
+    QuadraticCost,
+    Reason,
+    SolverStatus,
+    enum_arg,
+)
 
 __all__ = [
     "ILQRMethod",
@@ -700,7 +707,8 @@ def ilqr(
     """
     if not isinstance(problem, ILQRProblem):
         raise TypeError(f"ilqr: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
-    method, grad = ILQRMethod(method), GradMode(grad)
+    method = enum_arg(ILQRMethod, method, "method", "ilqr")
+    grad = enum_arg(GradMode, grad, "grad", "ilqr")
     opts = options if options is not None else ILQROptions()
     T, n, m = problem.T, problem.n, problem.m
     dtype, device = problem.dtype, problem.device
@@ -885,13 +893,7 @@ def _lq_newton(A, B, c, Q, R, N, q, r, x0, T):
     """The LQ (Newton) step, differentiable in ``c, q, r, x0`` through :mod:`controllers.riccati`."""
     from controllers import riccati
 
-    try:
-        import controllers.implicit  # noqa: F401
-
-        mode = riccati.GradMode.IMPLICIT
-    except ImportError:  # pragma: no cover - the implicit backward of the LQ solver is optional
-        mode = riccati.GradMode.UNROLLED
-    x, u, *_ = riccati.lqr(A, B, c, Q, R, N, q, r, x0, T, grad=mode)
+    x, u, *_ = riccati.lqr(A, B, c, Q, R, N, q, r, x0, T, grad=riccati.GradMode.IMPLICIT)
     return x, u
 
 

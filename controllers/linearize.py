@@ -16,7 +16,7 @@ from collections.abc import Callable
 
 import torch
 
-from controllers.problem import LinearDynamics, NonlinearDynamics
+from controllers.problem import LinearDynamics, NonlinearDynamics, enum_arg
 
 __all__ = ["JacobianMethod", "jacobians", "linearize"]
 
@@ -41,7 +41,7 @@ def jacobians(f: NonlinearDynamics | Callable, x: torch.Tensor, u: torch.Tensor,
         f: a :class:`NonlinearDynamics` or a batched callable ``f(x, u, t)``.
         x: ``(*B, n)``; u: ``(*B, m)`` (batch dims broadcast).
     """
-    method = JacobianMethod(method)
+    method = enum_arg(JacobianMethod, method, "method", "jacobians")
     dyn = _as_dynamics(f)
     fn = dyn.f if dyn is not None else f
     if not callable(fn):

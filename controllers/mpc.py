@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from controllers.ilqr import GradMode, ILQRMethod, ILQROptions, ILQRProblem, ILQRSolution, ilqr
-from controllers.problem import QuadraticCost
+from controllers.problem import QuadraticCost, enum_arg
 
 __all__ = ["MPCState", "MPCRollout", "shift", "mpc_step", "run_mpc", "MPCPolicy"]
 
@@ -137,6 +137,13 @@ class MPCPolicy(nn.Module):
         super().__init__()
         n, m = system.n, system.m
         q, r, target = (torch.as_tensor(v) for v in (q, r, target))
+        for name, v in (("r", r), ("target", target)):
+            if v.dtype != q.dtype:
+                raise TypeError(f"MPCPolicy: argument '{name}' has dtype {v.dtype} but 'q' has {q.dtype}; "
+                                "give q, r and target one dtype")
+        for name, v in (("u_lower", u_lower), ("u_upper", u_upper)):
+            if isinstance(v, torch.Tensor) and v.dtype != q.dtype:
+                raise TypeError(f"MPCPolicy: argument '{name}' has dtype {v.dtype} but 'q' has {q.dtype}")
         if q.shape != (n,) or target.shape != (n,):
             raise ValueError(f"MPCPolicy: q and target must have shape ({n},), got {tuple(q.shape)} and "
                              f"{tuple(target.shape)}")
@@ -149,7 +156,7 @@ class MPCPolicy(nn.Module):
         self.system = system
         self.horizon = horizon
         self.terminal_factor = float(terminal_factor)
-        self.grad = GradMode(grad)
+        self.grad = enum_arg(GradMode, grad, "grad", "MPCPolicy")
         self.options = options
         self.q_raw = nn.Parameter(_inv_softplus(q.detach().clone()))
         self.r_raw = nn.Parameter(_inv_softplus(r.detach().clone()))

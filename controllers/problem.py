@@ -49,7 +49,18 @@ __all__ = [
     "LQSolution",
     "rollout",
     "time_slice",
+    "enum_arg",
 ]
+
+
+def enum_arg(cls, value, name: str, fn: str):
+    """``cls(value)`` for a mode argument, with an error that names the argument and the choices."""
+    try:
+        return cls(value)
+    except ValueError:
+        choices = ", ".join(repr(m.value) for m in cls)
+        raise ValueError(f"{fn}: argument '{name}' must be one of {choices} (a {cls.__name__}), "
+                         f"got {value!r}") from None
 
 
 # --------------------------------------------------------------------------------------------------
@@ -152,7 +163,10 @@ def _check_time(sizes: dict[str, int], want: int, owner: str, what: str) -> None
 def _versions(*tensors: torch.Tensor | None) -> tuple:
     """In-place version counters of the tensors: part of every cache key, so that a cached quantity is
     recomputed after its data changed in place (e.g. an ``nn.Parameter`` after an optimizer step)."""
-    return tuple(-1 if v is None else v._version for v in tensors)
+    # inference-mode tensors have no version counter and cannot be modified in place outside inference
+    # mode, so their identity is enough
+    return tuple(-1 if v is None else ("inference", id(v)) if v.is_inference() else v._version
+                 for v in tensors)
 
 
 def time_slice(x: torch.Tensor | None, t: int, k: int) -> torch.Tensor | None:

@@ -43,6 +43,7 @@ from controllers.problem import (
     QuadraticCost,
     Reason,
     SolverStatus,
+    enum_arg,
 )
 
 __all__ = [
@@ -364,7 +365,7 @@ def lqr(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, Q: torch.Tenso
     returned without a graph (use ``grad='unrolled'`` to differentiate the gains).  ``fused=True``
     runs each step's pivot updates as one ``torch.compile``'d kernel (not with ``grad='unrolled'``).
     """
-    grad = GradMode(grad)
+    grad = enum_arg(GradMode, grad, "grad", "lqr")
     if fused and grad is GradMode.UNROLLED:
         raise ValueError("lqr: fused=True needs grad='implicit' or 'none' (no graph through the kernel)")
     n, m = A.shape[-1], B.shape[-1]
@@ -409,7 +410,7 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
     if not isinstance(problem, LQProblem):
         raise TypeError(f"solve: argument 'problem' must be an LQProblem, got {type(problem).__name__}")
     T = problem.T
-    grad = GradMode(grad)
+    grad = enum_arg(GradMode, grad, "grad", "solve")
     d, cost = problem.dynamics, problem.cost
     stage = None
     if grad is GradMode.NONE:

@@ -10,23 +10,24 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from types import MappingProxyType
 
 __all__ = ["main", "build_parser"]
 
 # (command path, module, one-line help).  A command path of two words is a sub-subcommand.
-_COMMANDS: list[tuple[tuple[str, ...], str, str]] = [
+_COMMANDS: tuple[tuple[tuple[str, ...], str, str], ...] = (
     (("demo",), "liecontrol.demo", "batched SE(3) showcase: accuracy figures and a plot under out/"),
     (("bench", "lie"), "liecontrol.bench.lie", "Lie-group ops vs pypose/roma: speed and round-trip error"),
     (("bench", "lqr"), "liecontrol.bench.lqr", "LQR vs pypose and mpc.pytorch"),
     (("bench", "ilqr"), "liecontrol.bench.ilqr", "iLQR swing-up vs mpc.pytorch box-DDP"),
     (("reproduce", "me2"), "liecontrol.reproduce.me2",
      "seed 000 Sec. 4: ME2 horizon prediction, Table 1, Fig. 3-4"),
-]
+)
 
-_GROUP_HELP = {
+_GROUP_HELP = MappingProxyType({
     "bench": "benchmarks against the anchors, measured in the same run",
     "reproduce": "reproductions of the experiments in the seed papers",
-}
+})
 
 
 def build_parser(load: bool = False) -> argparse.ArgumentParser:

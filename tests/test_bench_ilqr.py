@@ -4,17 +4,9 @@ from __future__ import annotations
 
 import json
 
-import pytest
 import torch
 
 from liecontrol.bench import ilqr as bench
-
-
-@pytest.fixture(autouse=True)
-def _threads():
-    n = torch.get_num_threads()
-    yield
-    torch.set_num_threads(n)
 
 
 def test_bench_ilqr_smoke(tmp_path, capsys):
@@ -22,8 +14,11 @@ def test_bench_ilqr_smoke(tmp_path, capsys):
     parser = __import__("argparse").ArgumentParser()
     bench.add_arguments(parser)
     args = parser.parse_args(["--batch", "2", "--horizon", "8", "--repeats", "1", "--max-iter", "10",
-                              "--grad-batch", "2", "--problems", "pendulum", "--json", str(out)])
+                              "--grad-batch", "2", "--problems", "pendulum", "--json", str(out),
+                              "--threads", str(torch.get_num_threads() + 1)])
+    threads = torch.get_num_threads()
     assert bench.run(args) == 0
+    assert torch.get_num_threads() == threads  # the bench sets its own thread count and restores ours
     printed = capsys.readouterr().out
     assert "pendulum swing-up" in printed and "d(loss)/d(length)" in printed
     records = json.loads(out.read_text())

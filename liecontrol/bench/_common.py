@@ -6,6 +6,7 @@ in the same run, with each side timed as the median of several runs after warm-u
 
 from __future__ import annotations
 
+import functools
 import json
 import statistics
 import time
@@ -14,7 +15,7 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["time_ms", "print_table", "write_json", "sync"]
+__all__ = ["time_ms", "print_table", "write_json", "sync", "restores_threads"]
 
 
 def sync(device: torch.device | str | None = None) -> None:
@@ -76,3 +77,17 @@ def write_json(path: str | Path, records: list[dict]) -> None:
     p = Path(path)
     p.parent.mkdir(parents=True, exist_ok=True)
     p.write_text(json.dumps(records, indent=1, default=float) + "\n")
+
+
+def restores_threads(fn):
+    """Decorator: a benchmark may set torch's intra-op thread count; the caller gets its own back."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        n = torch.get_num_threads()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            torch.set_num_threads(n)
+
+    return wrapper

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from liecontrol.bench._common import print_table, time_ms, write_json
+from liecontrol.bench._common import print_table, restores_threads, time_ms, write_json
 
 __all__ = ["add_arguments", "run", "PROBLEMS"]
 
@@ -189,6 +189,7 @@ def _grad_check(name: str, B: int, T: int, seed: int, max_iter: int) -> dict:
             "converged": int(sol.status.converged.sum()), "clamped": int(sol.clamped.sum())}
 
 
+@restores_threads
 def run(args) -> int:
     from controllers.ilqr import ILQROptions, ilqr
 

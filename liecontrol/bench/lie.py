@@ -17,7 +17,7 @@ import math
 
 import torch
 
-from liecontrol.bench._common import print_table, time_ms, write_json
+from liecontrol.bench._common import print_table, restores_threads, time_ms, write_json
 from torchlie import se3, so3
 
 __all__ = ["add_arguments", "run", "measure"]
@@ -247,6 +247,7 @@ def measure(groups=("so3", "se3"), ops=OPS, dtypes=("float32", "float64"), batch
     return records
 
 
+@restores_threads
 def run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)

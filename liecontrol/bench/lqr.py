@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from liecontrol.bench._common import print_table, write_json
+from liecontrol.bench._common import print_table, restores_threads, write_json
 
 __all__ = ["add_arguments", "run", "make_problem", "run_bench"]
 
@@ -289,6 +289,7 @@ def _bench_mpc(prob, dtype_name, repeats, threads, python):
 # --------------------------------------------------------------------------------------------------
 
 
+@restores_threads
 def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads=1,
               anchors=("pypose", "mpc", "plain"), mpc_python=None, fused=False) -> list[dict]:
     """Run the benchmark and return the records (see the module docstring).
