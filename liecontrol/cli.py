@@ -16,7 +16,7 @@ __all__ = ["main", "build_parser"]
 
 # (command path, module, one-line help).  A command path of two words is a sub-subcommand.
 _COMMANDS: tuple[tuple[tuple[str, ...], str, str], ...] = (
-    (("demo",), "liecontrol.demo", "batched SE(3) showcase: accuracy figures and a plot under out/"),
+    (("demo",), "liecontrol.demo", "showcase: batched SE(3) accuracy and a differentiable iLQR swing-up"),
     (("bench", "lie"), "liecontrol.bench.lie", "Lie-group ops vs pypose/roma: speed and round-trip error"),
     (("bench", "lqr"), "liecontrol.bench.lqr", "LQR vs pypose and mpc.pytorch"),
     (("bench", "ilqr"), "liecontrol.bench.ilqr", "iLQR swing-up vs mpc.pytorch box-DDP"),

@@ -32,14 +32,19 @@ def test_console_script_entry_point_runs():
 
 
 def test_demo_reaches_its_accuracy(tmp_path, capsys):
-    assert cli.main(["demo", "--out", str(tmp_path), "--pairs", "64", "--clouds", "8"]) == 0
+    args = ["demo", "--out", str(tmp_path), "--pairs", "64", "--clouds", "8", "--pendulums", "4"]
+    assert cli.main(args) == 0
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
     assert summary["interpolation"]["twist_constancy_err"] < 1e-10
     assert summary["averaging"]["karcher_err_max"] < 1e-10
     # the naive projected matrix average is biased; the Karcher mean is not
     assert summary["averaging"]["naive_rotation_err_mean"] > 1e3 * summary["averaging"]["karcher_err_max"]
     assert summary["roundtrip_edges"]["float64"] < 1e-12 and summary["roundtrip_edges"]["float32"] < 2e-5
-    for name in ("se3_interpolation.png", "se3_averaging.png"):
+    swing = summary["swingup"]
+    assert swing["upright"] == swing["batch"] == 4 and swing["max_abs_u"] <= 3.0 + 1e-9
+    assert swing["clamped_fraction"] > 0.1  # the limits are active: the pendulum has to pump
+    assert swing["grad_length_median_rel_err"] < 1e-6
+    for name in ("se3_interpolation.png", "se3_averaging.png", "pendulum_swingup.png"):
         assert (tmp_path / "demo" / name).stat().st_size > 1000
 
 
