@@ -77,6 +77,7 @@ so batch operations know which dims are batch dims.
 
 from __future__ import annotations
 
+import abc
 import dataclasses
 import importlib
 import keyword
@@ -151,7 +152,7 @@ def _first_index(mask: torch.Tensor) -> tuple[int, ...]:
 # the contract
 # ------------------------------------------------------------------------------------------------
 
-class Manifold:
+class Manifold(abc.ABC):
     """A manifold 𝓜 of dimension ``dim`` (n) with exogenous-perturbation size ``ext_dim`` (l).
 
     Public methods (shapes with any leading batch dims ``*``, broadcast between arguments):
@@ -175,47 +176,60 @@ class Manifold:
 
     # --- implemented by subclasses ----------------------------------------------------------------
     @property
+    @abc.abstractmethod
     def dim(self) -> int:  # n
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
     @property
+    @abc.abstractmethod
     def ext_dim(self) -> int:  # l
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
     @property
+    @abc.abstractmethod
     def event_shape(self) -> tuple[int, ...]:
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
     def _describe(self) -> str:
         return repr(self)
 
     def _membership_error(self, x: torch.Tensor) -> torch.Tensor:
-        """Nonnegative violation per batch element, comparable with :func:`manifold_tolerance`."""
-        raise NotImplementedError
+        """Nonnegative violation per batch element, comparable with :func:`manifold_tolerance`.
+
+        Primitive manifolds implement it; a product checks its components through their own."""
+        raise NotImplementedError(f"{self._name} checks points component by component")
 
     def _project(self, x: torch.Tensor) -> torch.Tensor:
-        raise NotImplementedError
+        """Nearest point on the manifold (primitive manifolds; a product projects its components)."""
+        raise NotImplementedError(f"{self._name} projects points component by component")
 
+    @abc.abstractmethod
     def _boxplus(self, x, delta):
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
+    @abc.abstractmethod
     def _boxminus(self, y, x):
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
+    @abc.abstractmethod
     def _oplus(self, x, delta_e):
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
+    @abc.abstractmethod
     def _G_x(self, x_d, v):
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
+    @abc.abstractmethod
     def _G_f(self, x_d, v):
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
+    @abc.abstractmethod
     def _random(self, batch, generator, dtype, device):
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
+    @abc.abstractmethod
     def _identity(self, batch, dtype, device):
-        raise NotImplementedError
+        """Implemented by each concrete manifold."""
 
     # --- shared machinery -------------------------------------------------------------------------
     @property
