@@ -214,13 +214,21 @@ def _q_coeffs(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.T
 
 
 def _Q(v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """The off-diagonal block Q(v, ω) of the left Jacobian of SE(3) (Solà Eq. 180)."""
-    k1, k2, k3 = (k[..., None, None] for k in _q_coeffs((w * w).sum(-1)))
-    V, W = _so3._hat(v), _so3._hat(w)
-    WV, VW = W @ V, V @ W
-    WVW = WV @ W
-    return (0.5 * V + k1 * (WV + VW + WVW) + k2 * (W @ WV + VW @ W - 3 * WVW)
-            + k3 * (WVW @ W + W @ WVW))
+    """The off-diagonal block Q(v, ω) of the left Jacobian of SE(3) (Solà Eq. 180).
+
+    Eq. 180 is a sum of products of ω̂ and v̂; with ``â b̂ = b aᵀ − (a·b) I``, ``ω̂ v̂ ω̂ = −s ω̂`` and
+    ``ω̂² = ω ωᵀ − θ² I`` (s = ω·v) it collapses to outer products, with no 3×3 matrix product:
+    ``Q = (½ v − k1 s ω + k2 (2 s ω − θ² v))^ + k1 (v ωᵀ + ω vᵀ) − 2 k3 s ω ωᵀ + 2 s (k3 θ² − k1) I``.
+    """
+    theta2 = (w * w).sum(-1)
+    k1, k2, k3 = (k.unsqueeze(-1) for k in _q_coeffs(theta2))
+    s = (w * v).sum(-1, keepdim=True)
+    t2 = theta2.unsqueeze(-1)
+    skew = _so3._hat(0.5 * v - k1 * s * w + k2 * (2 * s * w - t2 * v))
+    vw = v.unsqueeze(-1) * w.unsqueeze(-2)
+    sym = k1.unsqueeze(-1) * (vw + vw.transpose(-1, -2)) - (2 * k3 * s).unsqueeze(-1) * (
+        w.unsqueeze(-1) * w.unsqueeze(-2))
+    return skew + sym + (2 * s * (k3 * t2 - k1)).unsqueeze(-1) * _so3._eye_like(w)
 
 
 def _jac_l(xi: torch.Tensor) -> torch.Tensor:
