@@ -19,6 +19,8 @@ __all__ = [
     "batch_shape",
     "float_dtype",
     "rng_device",
+    "horner",
+    "series_switch",
 ]
 
 
@@ -125,3 +127,17 @@ def rng_device(generator: torch.Generator | None, device) -> torch.device | str 
     if device is None and generator is not None:
         return generator.device
     return device
+
+
+def horner(t2: torch.Tensor, coeffs: tuple[float, ...]) -> torch.Tensor:
+    """``Σ_k coeffs[k] t2^k`` by Horner's rule (a truncated Taylor series in ``t2 = θ²``)."""
+    out = torch.full_like(t2, coeffs[-1])
+    for c in reversed(coeffs[:-1]):
+        out = out * t2 + c
+    return out
+
+
+def series_switch(dtype: torch.dtype) -> float:
+    """|θ| below which the 6- to 9-term series of so2/se2/quaternion are exact to ``dtype``'s resolution;
+    above it the closed forms' autograd derivatives have only ~eps/θ absolute cancellation error."""
+    return 0.05 if dtype == torch.float64 else 0.3 if dtype == torch.float32 else 0.5

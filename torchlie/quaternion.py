@@ -26,7 +26,10 @@ from torchlie._batch import (
     check_same_device,
     check_tensor,
     float_dtype,
+    horner,
+    rng_device,
     scalar_param,
+    series_switch,
 )
 
 __all__ = [
@@ -55,19 +58,6 @@ _SIN_HALF_OVER = tuple(0.5 * (-1) ** k / (4**k * math.factorial(2 * k + 1)) for 
 _ATAN_OVER = tuple((-1) ** k / (2 * k + 1) for k in range(9))
 
 
-def _series(t2: torch.Tensor, coeffs: tuple[float, ...]) -> torch.Tensor:
-    out = torch.full_like(t2, coeffs[-1])
-    for c in reversed(coeffs[:-1]):
-        out = out * t2 + c
-    return out
-
-
-def _tau(dtype: torch.dtype) -> float:
-    # Small-angle switch: the series above are exact to the dtype's resolution below it, and above it
-    # the closed forms' autograd derivatives have only ~eps/θ absolute cancellation error.
-    return 0.05 if dtype == torch.float64 else 0.3 if dtype == torch.float32 else 0.5
-
-
 def _cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     a0, a1, a2 = a.unbind(-1)
     b0, b1, b2 = b.unbind(-1)
@@ -93,9 +83,7 @@ def random(*batch: int, generator: torch.Generator | None = None, dtype: torch.d
     """
     shape = batch_shape(batch, "quaternion.random")
     dtype = float_dtype(dtype, "quaternion.random")
-    if device is None and generator is not None:
-        device = generator.device
-    u = torch.rand(*shape, 3, generator=generator, dtype=dtype, device=device)
+    u = torch.rand(*shape, 3, generator=generator, dtype=dtype, device=rng_device(generator, device))
     u1, u2, u3 = u.unbind(-1)
     r1, r2 = torch.sqrt(1 - u1), torch.sqrt(u1)
     a, b = 2 * math.pi * u2, 2 * math.pi * u3
@@ -202,12 +190,12 @@ def exp(omega: torch.Tensor) -> torch.Tensor:
     """
     omega = check_tensor(omega, (3,), "omega", "quaternion.exp")
     t2 = (omega * omega).sum(-1)
-    tau = _tau(omega.dtype)
+    tau = series_switch(omega.dtype)
     small = t2 < tau * tau
     th = torch.sqrt(torch.where(small, torch.ones_like(t2), t2))
     half = 0.5 * th
-    c = torch.where(small, _series(t2, _COS_HALF), torch.cos(half))
-    s = torch.where(small, _series(t2, _SIN_HALF_OVER), torch.sin(half) / th)
+    c = torch.where(small, horner(t2, _COS_HALF), torch.cos(half))
+    s = torch.where(small, horner(t2, _SIN_HALF_OVER), torch.sin(half) / th)
     return torch.cat((c.unsqueeze(-1), s.unsqueeze(-1) * omega), dim=-1)
 
 
@@ -221,11 +209,11 @@ def log(q: torch.Tensor) -> torch.Tensor:
     q = torch.where(q[..., :1] < 0, -q, q)
     w, v = q[..., 0], q[..., 1:]
     n2 = (v * v).sum(-1)
-    tau = _tau(q.dtype)
+    tau = series_switch(q.dtype)
     small = n2 < (tau * tau) * (w * w)
     n = torch.sqrt(torch.where(small, torch.ones_like(n2), n2))
     w_safe = torch.where(small, w, torch.ones_like(w))
-    series = _series(n2 / (w_safe * w_safe), _ATAN_OVER) / w_safe
+    series = horner(n2 / (w_safe * w_safe), _ATAN_OVER) / w_safe
     f = torch.where(small, series, torch.atan2(n, w) / n)
     return (2 * f).unsqueeze(-1) * v
 

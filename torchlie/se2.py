@@ -33,8 +33,10 @@ from torchlie._batch import (
     check_same_device,
     check_tensor,
     float_dtype,
+    horner,
     rng_device,
     scalar_param,
+    series_switch,
 )
 
 __all__ = [
@@ -65,31 +67,18 @@ _SINC_DEFECT = tuple((-1) ** k / math.factorial(2 * k + 3) for k in range(10))
 _DEFECT_TAU = 1.0
 
 
-def _series(t2: torch.Tensor, coeffs: tuple[float, ...]) -> torch.Tensor:
-    out = torch.full_like(t2, coeffs[-1])
-    for c in reversed(coeffs[:-1]):
-        out = out * t2 + c
-    return out
-
-
-def _sinc_tau(dtype: torch.dtype) -> float:
-    # Below this |θ| the 6-term series is exact to the dtype's resolution, and above it autograd's
-    # derivative of sin θ / θ (cos θ/θ − sin θ/θ²) has an absolute cancellation error of only ~eps/θ.
-    return 0.05 if dtype == torch.float64 else 0.3 if dtype == torch.float32 else 0.5
-
-
 def _sinc(th: torch.Tensor) -> torch.Tensor:
     """sin θ / θ with exact value and gradient at 0."""
-    small = th.abs() < _sinc_tau(th.dtype)
+    small = th.abs() < series_switch(th.dtype)
     safe = torch.where(small, torch.ones_like(th), th)
-    return torch.where(small, _series(th * th, _SINC), torch.sin(safe) / safe)
+    return torch.where(small, horner(th * th, _SINC), torch.sin(safe) / safe)
 
 
 def _sinc_defect(th: torch.Tensor) -> torch.Tensor:
     """(1 − sin θ/θ)/θ² = (θ − sin θ)/θ³, exact near 0 (no cancellation)."""
     small = th.abs() < _DEFECT_TAU
     safe = torch.where(small, torch.ones_like(th), th)
-    return torch.where(small, _series(th * th, _SINC_DEFECT), (1 - torch.sin(safe) / safe) / (safe * safe))
+    return torch.where(small, horner(th * th, _SINC_DEFECT), (1 - torch.sin(safe) / safe) / (safe * safe))
 
 
 def _coeffs(th: torch.Tensor):
