@@ -50,7 +50,10 @@ taking ``e₃`` to ``x/r`` on the upper hemisphere (``x_z ≥ 0``) and ``-e₃``
 (columns swapped there), so ``b₁ × b₂ = x/r`` everywhere and both branches are free of their
 singularities.  B is discontinuous across the equator (no continuous tangent frame exists on S²);
 the axioms and Eq. 23 never differentiate B, so this is harmless.  ``y ⊟ x`` at the antipode of x
-(cut locus, rotation axis undefined) returns ``(π, 0)``.
+(cut locus, rotation axis undefined) returns ``(π, 0)``, a rotation about b₁(x); so does any y with
+``sin∠(x, y) < eps``, which it reaches to ``r·eps``.  Next to the antipode the axis is taken from its
+two tangent components ``B(x)ᵀ(x × y)`` (the rounding error of ``x × y`` is as long as the vector
+itself there and points anywhere, also along x), so x ⊞ (y ⊟ x) = y to roundoff up to the antipode.
 
 Points off the manifold (a non-orthogonal "rotation", a sphere point of the wrong radius, a
 surface point off ``z = F(x, y)``, non-finite entries) are never used silently: every public
@@ -699,10 +702,17 @@ class S2(Manifold):
         u = x / torch.linalg.vector_norm(x, dim=-1, keepdim=True)
         yh = y / torch.linalg.vector_norm(y, dim=-1, keepdim=True)
         u, yh = torch.broadcast_tensors(u, yh)
-        w = torch.linalg.cross(u, yh, dim=-1)
-        s2 = (w * w).sum(-1)
+        # Rotation axis ⌊u⌋ŷ in the basis of T_u: p = B(u)ᵀ(u × ŷ), sin θ = ‖p‖.  Its length and
+        # direction come from these two tangent components only.  Near the antipode u × ŷ is a few
+        # ulps long and its rounding error has a component along u of the same size; normalising
+        # the 3-vector and then projecting with B(u)ᵀ (as before) dropped that part and shortened
+        # y ⊟ x (3.1374 instead of π, round trip off by 4e-3 at r = 1).
+        p = (self._B(u).transpose(-1, -2) @ torch.linalg.cross(u, yh, dim=-1).unsqueeze(-1)).squeeze(-1)
+        s2 = (p * p).sum(-1)
         c = (u * yh).sum(-1)
         series = (s2 < small_angle_eps(s2.dtype) ** 2) & (c > 0)
+        # sin θ below eps: θ is π to within eps, so any axis lands on y to r·eps; the axis b₁(x),
+        # i.e. (π, 0), is the deterministic choice (also at exactly -x, where none is defined)
         antipodal = (s2 < torch.finfo(s2.dtype).eps ** 2) & (c <= 0)
         one = torch.ones_like(s2)
         s = torch.sqrt(torch.where(series | antipodal, one, s2))
@@ -711,11 +721,8 @@ class S2(Manifold):
         t2 = s2 / (cs * cs)
         # θ/sin θ = atan(t)/(t cos θ) with t = tan θ
         k_small = (1 - t2 * (1 / 3 - t2 * (1 / 5 - t2 / 7))) / cs
-        k = torch.where(series, k_small, k_big)
-        phi = k.unsqueeze(-1) * w
-        d = (self._B(u).transpose(-1, -2) @ phi.unsqueeze(-1)).squeeze(-1)
-        pi_e1 = torch.zeros_like(d)
-        pi_e1 = torch.cat((torch.full_like(d[..., :1], math.pi), pi_e1[..., 1:]), -1)
+        d = torch.where(series, k_small, k_big).unsqueeze(-1) * p
+        pi_e1 = torch.cat((torch.full_like(d[..., :1], math.pi), torch.zeros_like(d[..., 1:])), -1)
         return torch.where(antipodal.unsqueeze(-1), pi_e1, d)
 
     def _oplus(self, x, delta_e):

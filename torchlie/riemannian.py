@@ -37,7 +37,7 @@ Two layers:
 Conventions and definitions at the edges
 ----------------------------------------
 * **Sphere Log at x = y** is 0 with finite gradients (removable singularity, series branch).
-  **At the antipode** (``‖y − (xᵀy)x‖ ≤ √eps`` with ``xᵀy < 0``) the geodesic is not unique; Log
+  **At the antipode** (``‖y − (xᵀy)x‖ ≤ eps`` with ``xᵀy < 0``) the geodesic is not unique; Log
   returns the vector of length π along a deterministic direction ``e(x)``: the unit projection onto
   T_x of the basis vector ``e_k`` with ``k = argmin |x_k|``. Since ``e(−x) = e(x)``, both transport
   forms (Eq. 182, 183) reduce there to the reflection ``I − 2 e eᵀ`` and agree. Gradients are finite
@@ -262,7 +262,9 @@ def _sphere_log_theta(x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, t
     w = w - _dot(x, w) * x                       # second Gram–Schmidt pass: w ⟂ x to rounding
     s2 = _dot(w, w)
     tau = small_angle_eps(x.dtype)
-    anti_tol = math.sqrt(torch.finfo(x.dtype).eps)
+    # antipode: sin θ below eps, so θ = π to within eps and any direction lands on y to eps (a
+    # √eps switch, as before, replaced Log by π e(x) up to 1.5e-8 from −x: round trip off by 1.5e-8)
+    anti_tol = torch.finfo(x.dtype).eps
     small = (s2 < tau * tau) & (c > 0)
     anti = (s2 <= anti_tol * anti_tol) & (c <= 0)
     regular = ~(small | anti)

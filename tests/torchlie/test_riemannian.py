@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 
+import mpmath
 import numpy as np
 import pytest
 import scipy.linalg as sla
@@ -106,6 +107,55 @@ def test_sphere_edges_identical_and_antipodal_points():
     J = torch.autograd.functional.jacobian(lambda t: rm.sphere_exp(x.detach(), t, project=True).sum(0), uu)
     assert torch.isfinite(J).all()
 
+
+
+def _mp_angle(x, y):
+    """Angle between float64 vectors, atan2(sqrt(‖x‖²‖y‖² − (x·y)²), x·y) in 50-digit mpmath."""
+    mpmath.mp.dps = 50
+    out = []
+    for a, b in zip(x.tolist(), y.tolist()):
+        a, b = [mpmath.mpf(v) for v in a], [mpmath.mpf(v) for v in b]
+        xy = sum(p * q for p, q in zip(a, b))
+        s2 = sum(p * p for p in a) * sum(q * q for q in b) - xy * xy
+        out.append(float(mpmath.atan2(mpmath.sqrt(max(s2, 0)), xy)))
+    return torch.tensor(out, dtype=F64)
+
+
+@pytest.mark.parametrize("d", [2, 3, 5])
+def test_sphere_log_next_to_the_antipode(d):
+    # issue 9 §5: Log switched to π e(x) for ‖y − (xᵀy)x‖ ≤ √eps = 1.5e-8, so Exp_x(Log_x y) missed y
+    # by up to 1.5e-8.  Points: Exp_x((π − k·ulp(π)) t) (k = 0..1000, the half-turn included), −x
+    # perturbed by k·eps (k = 1..1000) and renormalised, gaps π − θ log-spaced over 1e-16..1e-6 (the
+    # old switch band included), and exactly −x.
+    g = _gen(60 + d)
+    n = 200
+    x = _unit((n, d + 1), g)
+    t = torch.nn.functional.normalize(_tangent(x, g), dim=-1)
+    k = torch.randint(0, 1001, (n, 1), generator=g).to(F64)
+    gap = torch.logspace(-16, -6, n, dtype=F64).unsqueeze(-1)
+    bump = (k + 1) * torch.finfo(F64).eps * _unit((n, d + 1), g)
+    y = torch.cat((rm.sphere_exp(x, (math.pi - k * math.ulp(math.pi)) * t),
+                   torch.nn.functional.normalize(-x + bump, dim=-1),
+                   rm.sphere_exp(x, (math.pi - gap) * t),
+                   -x))
+    x = x.repeat(4, 1)
+    u = rm.sphere_log(x, y)
+    miss = torch.linalg.vector_norm(rm.sphere_exp(x, u) - y, dim=-1)
+    assert miss.max() <= 1e-13, f"round trip misses y by {miss.max():.3g}"     # requirement 1e-8
+    ref = _mp_angle(x, y)
+    assert (torch.linalg.vector_norm(u, dim=-1) - ref).abs().max() <= 1e-14
+    assert (rm.sphere_dist(x, y) - ref).abs().max() <= 1e-14
+    assert (u * x).sum(-1).abs().max() <= 1e-14                                   # u ∈ T_x
+    # float32: the same at float32 roundoff
+    x32, y32 = x.float(), torch.nn.functional.normalize(y.float(), dim=-1)
+    u32 = rm.sphere_log(x32, y32)
+    assert u32.dtype == torch.float32
+    assert torch.linalg.vector_norm(rm.sphere_exp(x32, u32) - y32, dim=-1).max() <= 2e-6
+    # gradcheck near (not at) the antipode, through project=True (the checker leaves the sphere)
+    for gap in (1e-1, 1e-2, 1e-3):
+        xr = x[:3].clone().requires_grad_()
+        yr = rm.sphere_exp(x[:3], (math.pi - gap) * t[:3]).requires_grad_()
+        assert torch.autograd.gradcheck(lambda a, b: rm.sphere_log(a, b, project=True), (xr, yr))
 
 def _seed_eq183_matrix(x, y):
     """A_{x→y} of Eq. 183 built literally from ū and ‖u‖ (reference; generic points only)."""
