@@ -1,5 +1,5 @@
 """``liecontrol bench ilqr``: pendulum and cart-pole swing-up, our control-limited iLQR vs mpc.pytorch's
-box-DDP MPC and pypose's MPC, measured in the same run.
+box-DDP MPC, pypose's MPC and crocoddyl's ``SolverBoxFDDP`` (C++), measured in the same run.
 
 Both sides solve the same problem: the dynamics of :mod:`controllers.systems` (re-implemented in plain
 torch in the anchor script, which runs in the separate mpc.pytorch environment), the same quadratic cost,
@@ -9,6 +9,17 @@ reference, its controls replayed open loop through our model (``anchor_cost_repl
 pinned to the same number on both sides (``--threads``, default 1: on a shared CPU tiny batched kernels
 are much faster single-threaded).  The gradient with respect to a dynamics parameter (pendulum and pole
 length) is checked against central finite differences and printed.
+
+crocoddyl (``_crocoddyl_anchor.py``, a subprocess of ``--croc-python``, by default this interpreter: the
+``bench`` extra installs it) solves the batch one problem at a time in float64 (its Python bindings are
+float64 only), so its rows compare against our solver in float64 on the same batch.  Its model is its own
+(pinocchio + ``DifferentialActionModelFreeFwdDynamics`` + ``IntegratedActionModelEuler``, the same
+semi-implicit Euler step as ours); before any figure is reported the bench feeds it our states and random
+controls and compares its one-step map, Jacobians, open-loop rollout and cost with ours
+(``model_dx``, ``rollout_dx``, ``jac_err``, ``cost_rel_err``) and refuses the comparison above
+``CROC_STEP_TOL`` / ``CROC_ROLLOUT_TOL`` / ``CROC_COST_TOL``.  Pinocchio's ABA has no joint damping, so
+the pendulum's damping runs as a Python actuation model (Python callbacks at every node); the pendulum
+with ``b = 0`` (``pendulum swing-up (b=0)``, ours on the same problem) is the all-C++ comparison.
 """
 
 from __future__ import annotations
@@ -16,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import tempfile
@@ -37,7 +49,14 @@ PROBLEMS: dict[str, dict] = {
 }
 
 COLUMNS = ["problem", "B", "T", "n", "m", "dtype", "pass", "ours_ms", "anchor", "anchor_ms", "speedup",
-           "max_abs_diff_u", "ours_cost", "anchor_cost", "anchor_cost_replayed", "converged"]
+           "max_abs_diff_u", "ours_cost", "anchor_cost", "anchor_cost_replayed", "cost_ratio", "ours_iters",
+           "anchor_iters", "converged", "anchor_converged"]
+CROC_COLUMNS = ["problem", "B", "T", "dtype", "model_dx", "rollout_dx", "jac_err", "cost_rel_err", "match",
+                "anchor_ms_per_problem", "cost_ratio_median", "cost_ratio_min", "cost_ratio_max", "anchor"]
+CROC_STEP_TOL = 1e-12  # max |Δx| of one step from the same (x, u), float64
+CROC_ROLLOUT_TOL = 1e-9  # max |Δx| of T-step open-loop rollouts of the same controls (chaos amplifies)
+CROC_COST_TOL = 1e-12  # relative difference of the cost of the same trajectory
+CROC_LABEL = "crocoddyl BoxFDDP (1 at a time)"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,6 +71,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-anchor", action="store_true", help="skip the anchors")
     parser.add_argument("--anchor-python", default=None,
                         help="python of the mpc.pytorch environment (default: <repo>/.venv-mpc/bin/python)")
+    parser.add_argument("--croc-python", default=None,
+                        help="python with crocoddyl (default: this interpreter; the bench extra installs it)")
+    parser.add_argument("--no-croc", action="store_true", help="skip the crocoddyl anchor")
     parser.add_argument("--json", default=None, metavar="PATH", help="write the records as JSON")
     parser.add_argument("--seed", type=int, default=0)
 
@@ -63,10 +85,11 @@ def _x0(name: str, B: int, seed: int) -> np.ndarray:
     return (rng.uniform(-1.0, 1.0, size=(B, len(s))) * s).astype(np.float32)
 
 
-def _system(name: str, dtype: torch.dtype, length: torch.Tensor | float | None = None):
+def _system(name: str, dtype: torch.dtype, length: torch.Tensor | float | None = None,
+            params: list[float] | None = None):
     from controllers.systems import CartPole, Pendulum
 
-    p = PROBLEMS[name]["params"]
+    p = PROBLEMS[name]["params"] if params is None else params
     dt = PROBLEMS[name]["dt"]
     if name == "pendulum":
         return Pendulum(mass=p[0], length=p[1] if length is None else length, damping=p[2], gravity=p[3],
@@ -75,7 +98,7 @@ def _system(name: str, dtype: torch.dtype, length: torch.Tensor | float | None =
                     dt=dt)
 
 
-def _problem(name: str, x0: torch.Tensor, T: int, length=None):
+def _problem(name: str, x0: torch.Tensor, T: int, length=None, params: list[float] | None = None):
     from controllers.ilqr import ILQRProblem
     from controllers.problem import QuadraticCost
 
@@ -86,7 +109,8 @@ def _problem(name: str, x0: torch.Tensor, T: int, length=None):
     cost = QuadraticCost(Q=torch.cat([Qd.expand(T, *Qd.shape), QT[None]]),
                          R=torch.tensor([[spec["R"]]], dtype=dt),
                          x_ref=torch.tensor(spec["target"], dtype=dt))
-    return ILQRProblem(_system(name, dt, length), cost, x0, T, u_lower=-spec["umax"], u_upper=spec["umax"])
+    return ILQRProblem(_system(name, dt, length, params), cost, x0, T, u_lower=-spec["umax"],
+                       u_upper=spec["umax"])
 
 
 def _anchor_python(args) -> Path | None:
@@ -165,6 +189,120 @@ def _single_element_record(name: str, prob, x0: torch.Tensor, T: int, opts, args
             "anchor_cost": float(p1.cost.evaluate(xa, ua)[0]), "anchor_note": r.get("note")}
 
 
+def _iters(it) -> str:
+    """``"mean/max"`` of per-problem iteration counts."""
+    it = np.asarray(it)
+    return f"{it.mean():.1f}/{int(it.max())}"
+
+
+def _croc_python(args) -> Path:
+    return Path(args.croc_python) if args.croc_python else Path(sys.executable)
+
+
+def _run_croc(py: Path, name: str, x0: torch.Tensor, T: int, params, u_check: torch.Tensor,
+              x_check: torch.Tensor, args) -> dict:
+    """crocoddyl's model check and one-at-a-time solves in a subprocess: the anchor's JSON with its arrays."""
+    spec = PROBLEMS[name]
+    with tempfile.TemporaryDirectory() as tmp:
+        f, out = Path(tmp) / "problem.npz", Path(tmp) / "out.npz"
+        np.savez(f, problem=np.array(name), x0=x0.numpy(), T=np.array(T), dt=np.array(spec["dt"]),
+                 umax=np.array(spec["umax"]), Qd=np.array(spec["Qd"]), QTd=np.array(spec["QTd"]),
+                 R=np.array(spec["R"]), target=np.array(spec["target"]), params=np.array(params, dtype=float),
+                 max_iter=np.array(args.max_iter), u_check=u_check.numpy(), x_check=x_check.numpy())
+        script = Path(__file__).with_name("_crocoddyl_anchor.py")
+        cmd = [str(py), str(script), str(f), str(out), "--threads", str(args.threads), "--repeats",
+               str(args.anchor_repeats)]
+        try:
+            res = subprocess.run(cmd, capture_output=True, text=True, timeout=3600,
+                                 env={**os.environ, "OMP_NUM_THREADS": str(args.threads)})
+        except (subprocess.TimeoutExpired, OSError) as e:
+            return {"ok": False, "error": f"{type(e).__name__}: {e}"[:300]}
+        lines = res.stdout.strip().splitlines()
+        if res.returncode != 0 or not lines:
+            err = (res.stderr.strip().splitlines() or [f"exit code {res.returncode}, no output"])[-1][:300]
+            return {"ok": False, "error": err}
+        try:
+            r = json.loads(lines[-1])
+            if r.get("ok"):
+                with np.load(out, allow_pickle=False) as z:
+                    r.update({k: z[k] for k in z.files})
+        except (ValueError, OSError) as e:
+            return {"ok": False, "error": f"unreadable anchor output: {type(e).__name__}: {e}"[:300]}
+    return r
+
+
+def _croc_compare(name: str, label: str, x0_np: np.ndarray, T: int, args, opts, params=None,
+                  anchor_params=None) -> dict:
+    """crocoddyl's SolverBoxFDDP on each problem of the batch in turn vs ours on the whole batch, float64.
+
+    First the model check: from our rollout of random controls within the limits, crocoddyl's one-step map,
+    Jacobians, own rollout and cost against ours.  A mismatch is reported instead of any comparison.
+    ``anchor_params`` (default ``params``) are the physical parameters handed to the anchor (tests use it
+    to show that the check refuses a different model).
+    """
+    from controllers.ilqr import ilqr
+    from controllers.problem import rollout
+
+    spec = PROBLEMS[name]
+    params = list(spec["params"] if params is None else params)
+    x0 = torch.as_tensor(x0_np).to(torch.float64)  # the float32 initial states, exactly
+    prob = _problem(name, x0, T, params=params)
+    B, n, m = x0.shape[0], prob.n, prob.m
+    none = dict.fromkeys(["ours_ms", "anchor_ms", "speedup", "max_abs_diff_u", "ours_cost", "anchor_cost",
+                          "anchor_cost_replayed", "cost_ratio"])
+    base = {"problem": label, "B": B, "T": T, "n": n, "m": m, "dtype": "float64", "pass": "fwd", **none}
+    py = _croc_python(args)
+    if not py.exists():
+        return {**base, "anchor": "crocoddyl: missing", "anchor_error": f"{py} not found"}
+    gen = torch.Generator().manual_seed(args.seed + 1)
+    u_check = (2 * torch.rand(B, T, m, generator=gen, dtype=torch.float64) - 1) * spec["umax"]
+    x_check = rollout(prob.dynamics, x0, u_check)
+    r = _run_croc(py, name, x0, T, params if anchor_params is None else anchor_params, u_check, x_check, args)
+    if r.get("missing"):
+        return {**base, "anchor": "crocoddyl: missing (pip install -e '.[bench]')",
+                "anchor_error": r.get("error")}
+    if not r.get("ok"):
+        return {**base, "anchor": "crocoddyl BoxFDDP: FAILED", "anchor_error": r.get("error")}
+    A, Bj = prob.dynamics.jacobian(x_check[..., :-1, :], u_check)
+    ours_check_cost = prob.cost.evaluate(x_check, u_check).numpy()
+    chk = {"model_dx": float(np.abs(r["step_x"] - x_check[..., 1:, :].numpy()).max()),
+           "rollout_dx": float(np.abs(r["rollout_x"] - x_check.numpy()).max()),
+           "jac_err": float(max(np.abs(r["step_Fx"] - A.numpy()).max(),
+                                np.abs(r["step_Fu"] - Bj.numpy()).max())),
+           "cost_rel_err": float((np.abs(r["check_cost"] - ours_check_cost) / np.abs(ours_check_cost)).max()),
+           "anchor_note": r.get("note"), "anchor_versions": r.get("versions")}
+    ok = (chk["model_dx"] <= CROC_STEP_TOL and chk["rollout_dx"] <= CROC_ROLLOUT_TOL  # False on NaN too
+          and chk["cost_rel_err"] <= CROC_COST_TOL)
+    chk["match"] = "yes" if ok else "NO"
+    if not ok:
+        return {**base, **chk, "anchor": f"crocoddyl: MODEL MISMATCH (max |dx| {chk['model_dx']:.1e}), "
+                                         "not compared"}
+    sol = ilqr(prob, grad="none", options=opts)
+    ours_ms = time_ms(lambda: ilqr(prob, grad="none", options=opts), repeats=args.repeats, warmup=1)
+    xs, us = torch.as_tensor(r["xs"]), torch.as_tensor(r["us"])
+    lo, hi = prob.bounds()
+    anchor_cost = prob.cost.evaluate(xs, torch.minimum(torch.maximum(us, lo), hi))  # (B,), its own rollout
+    ratio = (sol.cost / anchor_cost).numpy()
+    total = float(r["ms"].sum())
+    return {**base, **chk, "anchor": CROC_LABEL, "ours_ms": ours_ms, "anchor_ms": total,
+            "anchor_ms_per_problem": total / B, "speedup": total / ours_ms,
+            "max_abs_diff_u": float((us - sol.u).abs().max()),
+            "ours_cost": float(sol.cost.mean()), "anchor_cost": float(anchor_cost.mean()),
+            "anchor_cost_replayed": float(_score(prob, us).mean()),
+            "anchor_cost_own": float(r["cost"].mean()),
+            "cost_ratio": float(sol.cost.mean() / anchor_cost.mean()),
+            "cost_ratio_median": float(np.median(ratio)),
+            "cost_ratio_min": float(ratio.min()), "cost_ratio_max": float(ratio.max()),
+            "ours_iters": _iters(sol.status.iterations), "anchor_iters": _iters(r["iters"]),
+            "converged": f"{int(sol.status.converged.sum())}/{B}",
+            "anchor_converged": f"{int(r['converged'].sum())}/{B}",
+            "anchor_feasible": f"{int(r['feasible'].sum())}/{B}",
+            "anchor_unactuated_max": float(r["unactuated_max"].max()),
+            "ours_cost_per_problem": sol.cost.tolist(), "anchor_cost_per_problem": anchor_cost.tolist(),
+            "ours_iters_per_problem": sol.status.iterations.tolist(),
+            "anchor_iters_per_problem": r["iters"].tolist(), "anchor_ms_per_problem_list": r["ms"].tolist()}
+
+
 def _grad_check(name: str, B: int, T: int, seed: int, max_iter: int) -> dict:
     """d(Σ cost)/d(length) by the implicit gradient and by central finite differences (float64)."""
     from controllers.ilqr import ILQROptions, ilqr
@@ -209,7 +347,7 @@ def run(args) -> int:
         ours_cost = float(sol.cost.mean())
         base = {"problem": f"{name} swing-up", "B": B, "T": T, "n": n, "m": m, "dtype": "float32",
                 "pass": "fwd",
-                "ours_ms": ours_ms, "ours_cost": ours_cost,
+                "ours_ms": ours_ms, "ours_cost": ours_cost, "ours_iters": _iters(sol.status.iterations),
                 "converged": f"{int(sol.status.converged.sum())}/{B}"}
         if args.no_anchor:
             records.append({**base, "anchor": "skipped", "anchor_ms": None, "speedup": None,
@@ -230,12 +368,20 @@ def run(args) -> int:
                 rec = {**base, "anchor": label, "anchor_ms": r["ms"], "speedup": r["ms"] / ours_ms,
                        "max_abs_diff_u": float((ua - sol.u).abs().max())}
                 rec.update(_anchor_costs(prob, r, ua, B, T, n))
+                rec["cost_ratio"] = ours_cost / rec["anchor_cost"]
                 if r.get("note"):
                     rec["anchor_note"] = r["note"]
                 records.append(rec)
             r1 = out.get("pypose_b1")
             if r1 is not None:
                 records.append(_single_element_record(name, prob, x0, T, opts, args, r1))
+        if not (args.no_anchor or args.no_croc):
+            variants = [(f"{name} swing-up", None)]
+            if name == "pendulum":  # damping 0: crocoddyl without Python callbacks, ours on the same problem
+                p = PROBLEMS[name]["params"]
+                variants.append(("pendulum swing-up (b=0)", [p[0], p[1], 0.0, p[3]]))
+            for label, params in variants:
+                records.append(_croc_compare(name, label, x0_np, T, args, opts, params))
     # forward + backward (implicit gradient w.r.t. the pendulum length) at the target size
     if "pendulum" in args.problems:
         x0 = torch.as_tensor(_x0("pendulum", B, args.seed))
@@ -251,6 +397,13 @@ def run(args) -> int:
                         "anchor_ms": None, "speedup": None, "max_abs_diff_u": None, "ours_cost": None,
                         "anchor_cost": None})
     print_table(records, COLUMNS)
+    croc = [r for r in records if "model_dx" in r]
+    if croc:
+        print()
+        print(f"crocoddyl model check (our rollout of random controls, float64; refused above one-step "
+              f"{CROC_STEP_TOL:g} / rollout {CROC_ROLLOUT_TOL:g} / cost {CROC_COST_TOL:g}) and per-problem "
+              "figures (cost ratio = ours / crocoddyl, per problem):")
+        print_table(croc, CROC_COLUMNS)
     grads = []
     for name in args.problems:
         grads.append(_grad_check(name, args.grad_batch, T, args.seed, args.max_iter))
