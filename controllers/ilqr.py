@@ -23,6 +23,13 @@ Both regularize ``Q_uu`` (resp. the Gauss–Newton matrix) Levenberg–Marquardt
 per-element schedule of Tassa et al., stop per element on a small step (``‖Δu‖∞ ≤ tol (1 + ‖u‖∞)``,
 the Δ_min of Algorithms 4–5) or a small relative cost decrease, and record the cost history.
 
+**Status is a certificate.**  A small step or decrease only says that the iteration stopped moving (a
+box QP with no descent direction returns a zero step, a large μ shrinks every step).  ``CONVERGED`` is
+reported only where the projected reduced gradient ``u − clip(u − ∇_u J)`` — the KKT residual of the
+control-limited problem, with ``∇_u J`` through the dynamics by the costates — is below
+:attr:`ILQROptions.tol_kkt` (relative) at the returned point; an element that stopped elsewhere is
+``STALLED``, and the residual itself is returned (:attr:`ILQRSolution.kkt_residual`).
+
 Gradients (:class:`GradMode`).  ``IMPLICIT`` (default): the solver runs without a graph; at the returned
 point ``z* = (x*, u*)`` with costates ``λ*`` the stationarity conditions ``∇_z L(z*, λ*; θ) = 0`` and the
 dynamics ``c(z*; θ) = 0`` (clamped controls fixed on their bounds) define ``z*(θ)`` implicitly, and
@@ -48,7 +55,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
+from controllers.boxqp import box_qp, masked_hessian
 from controllers.problem import (
     LinearDynamics,
     NonlinearDynamics,
@@ -90,8 +97,15 @@ class ILQROptions:
 
     Attributes:
         max_iter: iterations at most.
-        tol: stop when ``max_t ‖k_t‖∞ ≤ tol · (1 + ‖u‖∞)`` (Δ_min of Algorithms 4-5); default by dtype.
-        tol_cost: stop when an accepted step lowers the cost by less than ``tol_cost · |J|``.
+        tol: a step with ``max_t ‖k_t‖∞ ≤ tol · (1 + ‖u‖∞)`` (Δ_min of Algorithms 4-5) is negligible: the
+            element stops (``STALLED`` unless certified, below); default by dtype.
+        tol_cost: an accepted step that lowers the cost by less than ``tol_cost · |J|`` twice in a row
+            stops the element the same way.
+        tol_kkt: the certificate behind ``CONVERGED``: the projected reduced gradient
+            ``max_t ‖u_t − clip(u_t − ∇_{u_t} J)‖∞`` (``∇_u J`` through the dynamics, by the costates
+            ``λ``) is at most ``tol_kkt`` times the largest of the terms ``|∂l/∂u_t| + |B_tᵀ λ_{t+1}|``
+            that cancel in it at a free optimum; checked at the returned point.  Default ``1e-6``
+            (float64) or ``1e-3`` (lower precisions).
         mu_init, mu_min, mu_max, mu_factor: Levenberg-Marquardt regularization ``Q_uu + μ I`` with the
             schedule of Tassa et al. (μ below ``mu_min`` becomes 0; above ``mu_max`` the element fails).
         line_search_steps: candidate step sizes ``1, ½, ¼, ...`` (Algorithm 1, α_min = 2^-(steps-1)).
@@ -101,6 +115,7 @@ class ILQROptions:
     max_iter: int = 100
     tol: float | None = None
     tol_cost: float | None = None
+    tol_kkt: float | None = None
     mu_init: float = 0.0
     mu_min: float = 1e-6
     mu_max: float = 1e10
@@ -119,6 +134,10 @@ def _is_system(d) -> bool:
     return (not isinstance(d, (LinearDynamics, NonlinearDynamics)) and callable(getattr(d, "step", None))
             and callable(getattr(d, "jacobian", None)) and isinstance(getattr(d, "n", None), int)
             and isinstance(getattr(d, "m", None), int))
+
+
+def _shape(v) -> object:
+    return tuple(v.shape) if isinstance(v, Tensor) else v
 
 
 @dataclass(frozen=True, eq=False)
@@ -186,6 +205,12 @@ class ILQRProblem:
                 if v.dim() == 0 or v.shape[-1] not in (1, m):
                     raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, {m}), "
                                      f"got {tuple(v.shape)}")
+        try:
+            self.batch_shape  # noqa: B018
+        except RuntimeError as e:
+            raise ValueError(f"{own}: batch dims of x0 {tuple(self.x0.shape)}, dynamics, cost and limits "
+                             f"(u_lower {_shape(self.u_lower)}, u_upper {_shape(self.u_upper)}; limits "
+                             "are (*B, T, m)) do not broadcast") from e
         lo, hi = self.bounds()
         if lo is not None and bool((lo > hi).any()):
             raise ValueError(f"{own}: u_lower must be <= u_upper everywhere")
@@ -246,6 +271,8 @@ class ILQRSolution:
         clamped: ``(*B, T, m)`` bool, controls on a bound with an active limit at the solution.
         cost_history: ``(iterations+1, *B)`` cost after each iteration (first row: initial guess).
         mu: ``(*B,)`` final regularization.
+        kkt_residual: ``(*B,)`` relative projected-gradient residual at the returned point
+            (:attr:`ILQROptions.tol_kkt`); ``CONVERGED`` exactly where it is at most ``tol_kkt``.
     """
 
     x: Tensor
@@ -257,6 +284,7 @@ class ILQRSolution:
     clamped: Tensor
     cost_history: Tensor
     mu: Tensor
+    kkt_residual: Tensor
 
 
 @dataclass(frozen=True, eq=False)
@@ -336,9 +364,9 @@ def _linearize(dyn, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Time-major ``A (T, *B, n, n)``, ``B (T, *B, n, m)`` along ``x (*B, T+1, n)``, ``u (*B, T, m)``."""
     T = u.shape[-2]
     if isinstance(dyn, LinearDynamics):
-        A = dyn.A.movedim(-3, 0)
-        B = dyn.B.movedim(-3, 0)
-        return A.expand(T, *A.shape[1:]), B.expand(T, *B.shape[1:])
+        # batch dims right-aligned with the trajectory's (singletons where A or B is shared)
+        nb = x.dim() - 2
+        return _tm(dyn.A, 2, T, nb), _tm(dyn.B, 2, T, nb)
     if _is_system(dyn):
         return dyn.jacobian(x[..., :T, :].movedim(-2, 0), u.movedim(-2, 0), 0)
     from controllers.linearize import jacobians
@@ -536,8 +564,8 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
             else:
                 res = box_qp(Qreg, Qu, lo[t], hi[t], x0=None if k_warm is None else k_warm[t], check=False)
                 free = res.free
-                good = (res.status != int(BoxQPStatus.NOT_POSITIVE_DEFINITE)) & \
-                    (res.status != int(BoxQPStatus.NON_FINITE))
+                # an uncertified inner QP (no descent, iteration cap) is a failed step: μ grows
+                good = res.converged
                 L, okL = _factor(masked_hessian(Qreg, free))
                 good = good & okL
                 k = torch.where(good.unsqueeze(-1), res.x, torch.zeros((), **kw))
@@ -608,8 +636,7 @@ def _batch_step(A, B, gx, gu, Hxx, Hux, Huu, mu, lo, hi, k_warm, bs):
         hif = hi.movedim(0, -2).expand(*bs, T, m).reshape(*bs, T * m)
         warm = None if k_warm is None else k_warm.movedim(0, -2).reshape(*bs, T * m)
         res = box_qp(Hreg, g, lof, hif, x0=warm)
-        ok = (res.status != int(BoxQPStatus.NOT_POSITIVE_DEFINITE)) & \
-            (res.status != int(BoxQPStatus.NON_FINITE))
+        ok = res.converged  # an uncertified QP step (e.g. no descent) is a failed step: μ grows
         du = res.x
     du = torch.where(ok.unsqueeze(-1), du, torch.zeros((), dtype=dtype, device=device))
     dV1 = (du * g).sum(-1)
@@ -670,11 +697,34 @@ def _pick(v: Tensor, idx: Tensor) -> Tensor:
 # --------------------------------------------------------------------------------------------------
 
 
-def _defaults(opts: ILQROptions, dtype: torch.dtype) -> tuple[float, float]:
+def _defaults(opts: ILQROptions, dtype: torch.dtype) -> tuple[float, float, float]:
     single = dtype in (torch.float32, torch.float16, torch.bfloat16)
     tol = opts.tol if opts.tol is not None else (1e-4 if single else 1e-8)
     tol_cost = opts.tol_cost if opts.tol_cost is not None else (1e-6 if single else 1e-12)
-    return tol, tol_cost
+    tol_kkt = opts.tol_kkt if opts.tol_kkt is not None else (1e-3 if single else 1e-6)
+    return tol, tol_cost, tol_kkt
+
+
+def _kkt_residual(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: Tensor | None,
+                  hi: Tensor | None) -> Tensor:
+    """Relative projected reduced gradient ``(*B,)`` (:attr:`ILQROptions.tol_kkt`), time-major inputs.
+
+    ``∇_{u_t} J = ∂l/∂u_t + B_tᵀ λ_{t+1}`` with the costates ``λ_T = ∂l/∂x_T``,
+    ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}``; the residual is ``u − clip(u − ∇_u J, lo, hi)`` (zero exactly at a
+    KKT point of the box-constrained problem).  A non-finite element gives NaN (never certified).
+    """
+    T = u.shape[0]
+    lam = gx[T]
+    grads, scales = [None] * T, [None] * T
+    for t in range(T - 1, -1, -1):
+        Btl = (B[t].mT @ lam.unsqueeze(-1)).squeeze(-1)
+        grads[t] = gu[t] + Btl
+        scales[t] = gu[t].abs() + Btl.abs()
+        lam = gx[t] + (A[t].mT @ lam.unsqueeze(-1)).squeeze(-1)
+    g = torch.stack(grads)
+    pg = g if lo is None else u - torch.minimum(torch.maximum(u - g, lo), hi)
+    scale = torch.stack(scales).abs().amax(dim=(0, -1)).clamp_min(torch.finfo(u.dtype).tiny)
+    return pg.abs().amax(dim=(0, -1)) / scale
 
 
 def _bcast(v: Tensor | None, shape) -> Tensor | None:
@@ -700,10 +750,12 @@ def ilqr(
         options: :class:`ILQROptions`.
 
     Returns:
-        :class:`ILQRSolution`; per-element ``status.reason`` is ``CONVERGED``, ``MAX_ITERATIONS``,
-        ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``, ``NONFINITE_INPUT`` (NaN/inf in
-        ``x0`` or ``u_init``: that element's outputs are NaN) or ``DIVERGED`` (the initial rollout is not
-        finite).  Every other element is solved as if alone.
+        :class:`ILQRSolution`; per-element ``status.reason`` is ``CONVERGED`` (certified: KKT residual
+        at most ``tol_kkt`` at the returned point), ``STALLED`` (stopped moving at a point that is not
+        certified), ``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``
+        (no μ up to ``mu_max`` gave a positive-definite ``Q_uu`` and a certified inner box QP),
+        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``: that element's outputs are NaN) or
+        ``DIVERGED`` (the initial rollout is not finite).  Every other element is solved as if alone.
     """
     if not isinstance(problem, ILQRProblem):
         raise TypeError(f"ilqr: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
@@ -745,7 +797,7 @@ def ilqr(
             out = _solve(problem, x0s.detach(), u0.detach(), lo, hi, bad, bs, method, opts)
         if analytic:
             out = tuple(v.clone() for v in out)
-    x, u, K, kff, free, reason, iters, hist, mu = out
+    x, u, K, kff, free, reason, iters, hist, mu, kkt = out
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
         x, u = _attach_implicit(problem, x0s, x, u, free, bs)
     with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
@@ -757,7 +809,7 @@ def ilqr(
     cost = torch.where(bad, nanv, cost)
     status = SolverStatus(converged=reason == int(Reason.CONVERGED), iterations=iters, reason=reason)
     return ILQRSolution(x=x, u=u, K=K, k=kff, cost=cost, status=status, clamped=~free, cost_history=hist,
-                        mu=mu)
+                        mu=mu, kkt_residual=kkt)
 
 
 def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
@@ -765,7 +817,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     T, nb = problem.T, len(bs)
     dtype, device = problem.dtype, problem.device
     kw = dict(dtype=dtype, device=device)
-    tol, tol_cost = _defaults(opts, dtype)
+    tol, tol_cost, tol_kkt = _defaults(opts, dtype)
     f = opts.mu_factor
     lo_tm = None if lo is None else lo.movedim(-2, 0)
     hi_tm = None if hi is None else hi.movedim(-2, 0)
@@ -782,6 +834,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     mu = torch.full(bs, float(opts.mu_init), **kw)
     dmu = torch.ones(bs, **kw)
     iters = torch.zeros(bs, dtype=torch.int64, device=device)
+    ntiny = torch.zeros(bs, dtype=torch.int64, device=device)
     hist = [J]
     k_warm = None
 
@@ -798,6 +851,15 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         gx_tm, gu_tm = gx.movedim(-2, 0), gu.movedim(-2, 0)
         Hxx_tm, Hux_tm, Huu_tm = _tm(Hxx, 2, T + 1, nb), _tm(Hux, 2, T, nb), _tm(Huu, 2, T, nb)
         u_tm = u.movedim(-2, 0)
+        # the certificate at the current point decides how an element that stops here ends
+        cert = _kkt_residual(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm) <= tol_kkt
+        # the last accepted step barely lowered the cost: done if certified, stalled the second time
+        done = active & (ntiny >= 1) & cert
+        stall = active & (ntiny >= 2) & ~cert
+        reason = torch.where(done, int(Reason.CONVERGED), torch.where(stall, int(Reason.STALLED), reason))
+        active = active & ~done & ~stall
+        if not bool(active.any()):
+            break
         dlo = None if lo is None else lo_tm - u_tm
         dhi = None if hi is None else hi_tm - u_tm
         while True:
@@ -817,11 +879,11 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
             active = active & ~over
             if not bool((active & ~ok).any()):
                 break
-        # Δ_min of Algorithms 4-5: the step is negligible -> converged at the current point
+        # Δ_min of Algorithms 4-5: the step is negligible -> converged if certified, else stalled
         kmax = k.abs().amax(dim=(0, -1))
         umax = u.abs().flatten(-2).amax(-1)
         small = active & (kmax <= tol * (1 + umax))
-        reason = torch.where(small, int(Reason.CONVERGED), reason)
+        reason = torch.where(small, torch.where(cert, int(Reason.CONVERGED), int(Reason.STALLED)), reason)
         active = active & ~small
         if not bool(active.any()):
             break
@@ -855,18 +917,23 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         over = failed & (mu > opts.mu_max)
         reason = torch.where(over, int(Reason.LINE_SEARCH_FAILED), reason)
         active = active & ~over
-        # a measured (not round-off) small decrease: converged; below round-off keep taking Newton steps
-        # until the step itself is negligible
+        # a measured (not round-off) small decrease: stop at the next point if it is certified (checked
+        # there); below round-off keep taking Newton steps until the step itself is negligible
         tiny = accept & (improvement <= tol_cost * Jold.abs()) & (_pick(expected, first) > noise)
-        reason = torch.where(tiny, int(Reason.CONVERGED), reason)
-        active = active & ~tiny
+        ntiny = torch.where(tiny, ntiny + 1, torch.zeros_like(ntiny))
         hist.append(J)
         k_warm = torch.where(accept.unsqueeze(-1), torch.zeros((), **kw), k)
 
-    # gains and clamped set at the returned point (one more backward pass)
+    # gains, clamped set and certificate at the returned point (one more backward pass)
     A, B = _linearize(dyn, x, u)
     gx, gu, Hxx, Hux, Huu = _cost_derivatives(cost, x, u)
     u_tm = u.movedim(-2, 0)
+    kkt = _kkt_residual(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm).expand(bs)
+    certified = kkt <= tol_kkt
+    iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (
+        reason == int(Reason.STALLED))
+    reason = torch.where(iterative & certified, int(Reason.CONVERGED), reason)
+    reason = torch.where((reason == int(Reason.CONVERGED)) & ~certified, int(Reason.STALLED), reason)
     dlo = None if lo is None else lo_tm - u_tm
     dhi = None if hi is None else hi_tm - u_tm
     bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), _tm(Hxx, 2, T + 1, nb),
@@ -874,7 +941,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     K = bw.K.movedim(0, -3)
     free = bw.free.movedim(0, -2)
     kff = u - (K @ x[..., :T, :].unsqueeze(-1)).squeeze(-1)
-    return x, u, K, kff, free, reason, iters, torch.stack(hist), mu
+    return x, u, K, kff, free, reason, iters, torch.stack(hist), mu, kkt
 
 
 # --------------------------------------------------------------------------------------------------

@@ -32,6 +32,9 @@ from controllers import riccati as _ric
 
 __all__ = ["LQRFunction", "lqr_implicit", "adjoint_solve"]
 
+#: iterative-refinement steps of the primal and adjoint solutions in the backward pass (:func:`_refine`)
+_REFINE_STEPS = 3
+
 
 def adjoint_solve(Phi: torch.Tensor, B: torch.Tensor, K: torch.Tensor, L: torch.Tensor, P: torch.Tensor,
                   qa: torch.Tensor, ra: torch.Tensor):
@@ -74,6 +77,63 @@ def adjoint_solve(Phi: torch.Tensor, B: torch.Tensor, K: torch.Tensor, L: torch.
     return dx.squeeze(-1), du, dlam
 
 
+def _tv(v: torch.Tensor, T: int) -> torch.Tensor:
+    """``(b, Tv, ...)`` with ``Tv`` 1 or ``T`` -> a view with ``T`` time steps."""
+    return v if v.shape[1] == T else v.expand(v.shape[0], T, *v.shape[2:])
+
+
+def _mv(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return torch.matmul(M, v.unsqueeze(-1)).squeeze(-1)
+
+
+def _refine(Phi, A, B, K, L, P, Q, R, N, qlin, rlin, x, u, steps: int):
+    """Iterative refinement of an LQ solution ``(x, u)`` with linear terms ``qlin, rlin`` (either None).
+
+    The Riccati gains are computed from value matrices that grow with the cost weights, so the closed-loop
+    trajectory carries an absolute error of about ``‖P‖ ε``; a costate ``λ_T = Q_T x_T + q_T`` multiplies
+    that error by ``‖Q_T‖`` again (an error ``~w² ε`` for a terminal weight ``w``).  Each step takes the
+    costates from the stationarity in ``x`` (backward recursion
+    ``λ_t = Q_t x_t + q_t + N_t u_t + A_tᵀ λ_{t+1}``, ``λ_T = Q_T x_T + q_T``), measures the residual of
+    the stationarity in ``u``, ``ρ_t = R_t u_t + r_t + N_tᵀ x_t + B_tᵀ λ_{t+1}``, and removes it with
+    the stored factors (the dynamics hold to round-off by construction of the forward pass).  Stops when
+    ``max|ρ|`` is below ``64 ε`` relative to the terms that cancel in it (well-conditioned problems: no
+    correction at all) or after ``steps`` corrections (three reach the round-off floor at a weight of
+    1e8 in float64; the residual itself cannot certify that floor, its terms cancel too).
+    Returns ``(x, u, λ)`` with ``λ`` consistent with the returned trajectory.
+    """
+    T = u.shape[1]
+    QT = _tv(Q, T + 1)
+    Rt, Bt_ = _tv(R, T), _tv(B, T)
+    Nt = None if N is None else _tv(N, T)
+    At = _tv(A, T).mT.contiguous()
+    fi = torch.finfo(x.dtype)
+    tol, tiny = 64 * fi.eps, fi.tiny
+    for it in range(steps + 1):
+        g = _mv(QT, x)
+        if qlin is not None:
+            g = g + qlin
+        if Nt is not None:
+            g = torch.cat([g[:, :T] + _mv(Nt, u), g[:, T:]], 1)
+        lam = torch.empty_like(g)
+        cur = g[:, T]
+        lam[:, T] = cur
+        for t in range(T - 1, -1, -1):
+            cur = g[:, t] + _mv(At[:, t], cur)
+            lam[:, t] = cur
+        terms = [_mv(Rt, u), _mv(Bt_.mT, lam[:, 1:])]
+        if rlin is not None:
+            terms.append(rlin)
+        if Nt is not None:
+            terms.append(_mv(Nt.mT, x[:, :T]))
+        rho = sum(terms)
+        # residual relative to the terms that cancel in it, per element (non-finite elements ignored)
+        rel = rho.abs().flatten(1).amax(1) / sum(v.abs() for v in terms).flatten(1).amax(1).clamp_min(tiny)
+        if it == steps or not bool((torch.nan_to_num(rel, nan=0.0, posinf=0.0) > tol).any()):
+            return x, u, lam
+        dx, du, _ = adjoint_solve(Phi, B, K, L, P, torch.zeros_like(x), rho)
+        x, u = x + dx, u + du
+
+
 def _sym(M: torch.Tensor) -> torch.Tensor:
     return 0.5 * (M + M.mT)
 
@@ -100,14 +160,16 @@ class LQRFunction(torch.autograd.Function):
         ctx.shapes = [None if v is None else v.shape for v in (A, B, c, Q, R, N, q, r, x0)]
         ctx.has = [v is not None for v in (A, B, c, Q, R, N, q, r, x0)]
         Bflat = F[..., :n, :m]
-        ctx.save_for_backward(x, u, fac.Kt, fac.Huu, fac.V, F, Bflat)
+        cost = ((Q, 2), (R, 2), (N, 2), (q, 1), (r, 1))
+        fl = [None if v is None else _ric._flat(v, bs, k) for v, k in cost]
+        ctx.save_for_backward(x, u, fac.Kt, fac.Huu, fac.V, F, Bflat, *fl)
         ctx.mark_non_differentiable(K, k, fac.ok)
         ctx.Bt = Bt
         return x, u, J, K, k, fac.ok
 
     @staticmethod
     def backward(ctx, gx, gu, gJ, _gK, _gk, _ginfo):
-        x, u, Kt, Huu, V, F, Bm = ctx.saved_tensors
+        x, u, Kt, Huu, V, F, Bm, Q, R, N, q, r = ctx.saved_tensors
         T, n, m, Bt, bs = ctx.T, ctx.n, ctx.m, ctx.Bt, ctx.bs
         dt, dev = x.dtype, x.device
         gx = torch.zeros(Bt, T + 1, n, dtype=dt, device=dev) if gx is None else gx
@@ -116,9 +178,14 @@ class LQRFunction(torch.autograd.Function):
         K = Kt[..., :n]
         Phi = _ric.closed_loop(F, Kt, m)[..., :n, :n]
         P = V[..., :n, :n]
-        lam = torch.matmul(P, x.unsqueeze(-1)).squeeze(-1) + V[..., :n, n]
         L, _ = torch.linalg.cholesky_ex(Huu)
-        dx, du, dlam = adjoint_solve(Phi, Bm, K, L, P, -gx, -gu)
+        A = F[..., :n, m:m + n]
+        # costates and adjoint trajectory refined against the stationarity conditions (see _refine): the
+        # plain λ = P x + p and the adjoint sweep lose accuracy like ‖Q‖²ε for large weights
+        steps = _REFINE_STEPS
+        x, u, lam = _refine(Phi, A, Bm, K, L, P, Q, R, N, q, r, x, u, steps)
+        dx, du, _ = adjoint_solve(Phi, Bm, K, L, P, -gx, -gu)
+        dx, du, dlam = _refine(Phi, A, Bm, K, L, P, Q, R, N, -gx, -gu, dx, du, steps)
         gJ1 = gJ[:, None, None]
         ex = -dx + gJ1 * x
         eu = -du + gJ1 * u

@@ -71,13 +71,18 @@ def enum_arg(cls, value, name: str, fn: str):
 class Reason(enum.IntEnum):
     """Why a solver stopped, per batch element (stored as int64 codes in :attr:`SolverStatus.reason`)."""
 
-    CONVERGED = 0  #: solved (an LQ problem is solved exactly in one pass)
+    #: solved: an LQ problem in one pass; an iterative solver only where its optimality (KKT) residual was
+    #: checked below tolerance at the returned point
+    CONVERGED = 0
     NONFINITE_INPUT = 1  #: NaN/inf in x0 or in the problem data of this element
     NOT_POSITIVE_DEFINITE = 2  #: Q not PSD or R not PD for this element
     SINGULAR_QUU = 3  #: Q_uu (or the lifted normal matrix) not PD in the backward pass
     MAX_ITERATIONS = 4  #: iterative solver hit its iteration limit
     LINE_SEARCH_FAILED = 5  #: no step length decreased the cost
     DIVERGED = 6  #: non-finite values appeared while iterating
+    #: no progress (a negligible step or cost decrease) at a point whose KKT residual is above tolerance:
+    #: not a certified optimum (e.g. the inner QP could not find a descent direction)
+    STALLED = 7
 
 
 @dataclass(frozen=True, eq=False)

@@ -61,18 +61,36 @@ def test_feedback_gains_are_optimal_from_any_state():
                                atol=1e-9, rtol=0)
 
 
-def test_augmented_state_lqt_eq76_78():
+def _stage_min_eig(cost, T):
+    """Smallest eigenvalue of the stage matrices of [x̃; u] (and of the terminal Q̃) over batch and time."""
+    Q, R = cost.Q, cost.R.expand(*cost.Q.shape[:-3], T, *cost.R.shape[-2:])
+    N = cost.N if cost.N is not None else torch.zeros(*Q.shape[:-3], T, Q.shape[-1], R.shape[-1], dtype=D)
+    W = torch.cat([torch.cat([Q[..., :T, :, :], N], -1), torch.cat([N.mT, R], -1)], -2)
+    return min(torch.linalg.eigvalsh(W).amin().item(), torch.linalg.eigvalsh(Q[..., T, :, :]).amin().item())
+
+
+@pytest.mark.parametrize("features", ["tracking", "tracking+cross", "all"])
+def test_augmented_state_lqt_eq76_78(features):
     g = torch.Generator().manual_seed(2)
-    p = random_problem(g, b=(3,), T=5)
-    dyn, cost, x0t = riccati.augmented_lqt(p)
+    kw = {"tracking": dict(linear=False, cross=False), "tracking+cross": dict(linear=False),
+          "all": {}}[features]
+    p = random_problem(g, b=(3,), T=5, **kw)
+    dyn, cost, x0t, offset = riccati.augmented_lqt(p)
     assert dyn.A.shape[-1] == p.n + 1 and cost.x_ref is None
+    # the augmented problem is PSD (seed Eq. 77): every stage matrix of [x̃; u], not just Q̃
+    assert _stage_min_eig(cost, p.T) > -1e-12
+    if features != "all":  # pure tracking: the same constants, nothing moved to the offset
+        torch.testing.assert_close(offset, torch.zeros(3, dtype=D), atol=1e-12, rtol=0)
+    else:  # linear terms make a stage negative somewhere: its minimum went to the offset
+        assert bool((offset < -1e-3).all())
     aug = lifted.solve_lifted(LQProblem(dyn, cost, x0t))  # solved as plain regulation, by the oracle
     sol = riccati.solve(p)
     torch.testing.assert_close(aug.u, sol.u, atol=1e-9, rtol=0)
     torch.testing.assert_close(aug.x[..., :-1], sol.x, atol=1e-9, rtol=0)
-    torch.testing.assert_close(aug.cost, sol.cost, atol=1e-9, rtol=1e-12)
-    # K̃ = [K, k] (Eq. 78) from the Riccati pass on the augmented problem
+    torch.testing.assert_close(aug.cost + offset, sol.cost, atol=1e-9, rtol=1e-12)
+    # K̃ = [K, k] (Eq. 78) from the Riccati pass on the augmented problem, which certifies it
     saug = riccati.solve(LQProblem(dyn, cost, x0t))
+    assert saug.status.reason_names() == ["CONVERGED"] * 3
     torch.testing.assert_close(saug.K[..., :-1], sol.K, atol=1e-9, rtol=0)
     torch.testing.assert_close(saug.K[..., -1], sol.k, atol=1e-9, rtol=0)
     # the seed's feedforward form: u = K (x - μ) + u_ff with u_ff = k + K μ  (Eq. 78, signs of this package)
@@ -95,10 +113,10 @@ def test_ls_recursive_gains_equal_riccati_eq79_81():
         p = random_problem(g, b=(2,), T=5, **kw)
         if p.cost.u_ref is not None:
             p = dataclasses.replace(p, cost=dataclasses.replace(p.cost, u_ref=None))
-        dyn, cost, x0t = riccati.augmented_lqt(p)
+        dyn, cost, x0t, _ = riccati.augmented_lqt(p)
         pa = LQProblem(dyn.expand_time(5), cost, x0t)
         Sx, Su, Qb, Rb = _lifted_mats(pa)
-        K, Fm = riccati.ls_recursive_gains(Sx, Su, Qb, Rb, pa.dynamics.A, pa.dynamics.B)
+        K, Fm, _ = riccati.ls_recursive_gains(Sx, Su, Qb, Rb, pa.dynamics.A, pa.dynamics.B)
         sol = riccati.solve(p)
         torch.testing.assert_close(K[..., :-1], sol.K, atol=1e-8, rtol=0)
         torch.testing.assert_close(K[..., -1], sol.k, atol=1e-8, rtol=0)
@@ -116,7 +134,7 @@ def test_ls_recursive_full_precision_and_primitives_reproduce_open_loop():
     p = LQProblem(LinearDynamics(A, B), QuadraticCost(Q, 0.1 * torch.eye(m, dtype=D),
                                                       x_ref=torch.randn(T + 1, n, dtype=D, generator=g)),
                   torch.randn(n, dtype=D, generator=g))
-    dyn, cost, x0t = riccati.augmented_lqt(p)
+    dyn, cost, x0t, _ = riccati.augmented_lqt(p)
     pa = LQProblem(dyn.expand_time(T), cost, x0t)
     Sx, Su, Qb, Rb = _lifted_mats(pa)
     # couple x_2 and x_6 in the (augmented) precision
@@ -127,7 +145,7 @@ def test_ls_recursive_full_precision_and_primitives_reproduce_open_loop():
     from controllers import basis
 
     for Qm, Psi in ((Qfull, None), (Qb, lifted.control_primitives(basis.rbf(T, 3, dtype=D), m))):
-        K, Fm = riccati.ls_recursive_gains(Sx, Su, Qm, Rb, pa.dynamics.A, pa.dynamics.B, Psi=Psi)
+        K, Fm, _ = riccati.ls_recursive_gains(Sx, Su, Qm, Rb, pa.dynamics.A, pa.dynamics.B, Psi=Psi)
         u_open = -(Fm @ x0t).reshape(T, m)
         x = x0t
         for t in range(T):
@@ -247,3 +265,25 @@ def test_cache_follows_in_place_updates_of_the_cost():
         p.cost.R.mul_(3.0)
     torch.testing.assert_close(riccati.solve(p, grad="none").u, lifted.solve_lifted(p).u, atol=1e-9, rtol=0)
     assert sum(k[0] == "stage" for k in p.cost._cache) == 1
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ls_recursive_gains_per_element_status(dtype):
+    """A non-PD normal matrix in one element (here R = 0 and Q = 0: F is undefined) is that element's
+    SINGULAR_QUU, with NaN outputs, instead of a LinAlgError for the batch; the other is unaffected."""
+    g = torch.Generator().manual_seed(5)
+    p = random_problem(g, b=(2,), T=4, drift=False, cross=False, refs=False, linear=False)
+    pa = LQProblem(p.dynamics.expand_time(4), p.cost, p.x0)
+    Sx, Su, Qb, Rb = _lifted_mats(pa)
+    Qb, Rb = Qb.clone(), Rb.clone()
+    Qb[1], Rb[1] = 0.0, 0.0
+    args = [v.to(dtype) for v in (Sx, Su, Qb, Rb, pa.dynamics.A, pa.dynamics.B)]
+    K, Fm, status = riccati.ls_recursive_gains(*args)
+    assert status.reason_names() == ["CONVERGED", "SINGULAR_QUU"]
+    assert bool(torch.isnan(K[1]).all()) and bool(torch.isfinite(K[0]).all())
+    K0, F0, st0 = riccati.ls_recursive_gains(*[v[:1] for v in args])
+    assert st0.all_converged
+    torch.testing.assert_close(K[:1], K0)
+    torch.testing.assert_close(Fm[:1], F0)
+    if dtype == torch.float64:
+        torch.testing.assert_close(K[0], riccati.solve(p).K[0], atol=1e-8, rtol=0)
