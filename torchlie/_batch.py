@@ -131,8 +131,10 @@ def rng_device(generator: torch.Generator | None, device) -> torch.device | str 
 
 def horner(t2: torch.Tensor, coeffs: tuple[float, ...]) -> torch.Tensor:
     """``Σ_k coeffs[k] t2^k`` by Horner's rule (a truncated Taylor series in ``t2 = θ²``)."""
-    out = torch.full_like(t2, coeffs[-1])
-    for c in reversed(coeffs[:-1]):
+    if len(coeffs) == 1:
+        return torch.full_like(t2, coeffs[0])
+    out = t2 * coeffs[-1] + coeffs[-2]
+    for c in reversed(coeffs[:-2]):
         out = out * t2 + c
     return out
 

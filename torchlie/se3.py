@@ -21,6 +21,7 @@ from torchlie._batch import (
     check_same_device,
     check_tensor,
     float_dtype,
+    horner,
     rng_device,
     scalar_param,
 )
@@ -168,11 +169,24 @@ def compose(X1: torch.Tensor, X2: torch.Tensor) -> torch.Tensor:
     return torch.matmul(X1, X2)
 
 
+# X⁻¹'s row-major entries as indices into X's: Rᵀ, with t (overwritten by −Rᵀ t) and the bottom row
+_INV_INDEX = (0, 4, 8, 3, 1, 5, 9, 7, 2, 6, 10, 11, 12, 13, 14, 15)
+
+
 def inverse(X: torch.Tensor) -> torch.Tensor:
     """X⁻¹ = [[Rᵀ, −Rᵀ t], [0, 1]]."""
     check_tensor(X, (4, 4), "X", "se3.inverse")
-    Rt = X[..., :3, :3].transpose(-1, -2)
-    return _assemble(Rt, -torch.matmul(Rt, X[..., :3, 3:]).squeeze(-1))
+    if torch.compiler.is_compiling():
+        return _assemble(X[..., :3, :3].transpose(-1, -2), -(X[..., :3, :3] * X[..., :3, 3:]).sum(-2))
+    # one gather permutes the entries in the matrices' own layout (a transposing copy or a batched
+    # matmul costs several times more); −Rᵀ t = −Σ_k R[k, :] t_k is three multiply-adds on rows
+    Xf = X.reshape(*X.shape[:-2], 16)
+    out = Xf.gather(-1, torch.tensor(_INV_INDEX, device=X.device).expand(Xf.shape)).view(X.shape)
+    tn = X[..., 0, :3] * X[..., 0, 3:]
+    tn = torch.addcmul(tn, X[..., 1, :3], X[..., 1, 3:])
+    out[..., :3, 3] = torch.addcmul(tn, X[..., 2, :3], X[..., 2, 3:]).neg_()
+    out[..., 3, :] = torch.tensor((0.0, 0.0, 0.0, 1.0), dtype=X.dtype, device=X.device)
+    return out
 
 
 def act(X: torch.Tensor, p: torch.Tensor) -> torch.Tensor:
@@ -197,75 +211,119 @@ def adjoint(X: torch.Tensor) -> torch.Tensor:
 # Jacobians
 # --------------------------------------------------------------------------------------------------
 
-def _q_coeffs(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """k1 = (θ − sin θ)/θ³, k2 = (θ² + 2 cos θ − 2)/(2θ⁴), k3 = (2θ − 3 sin θ + θ cos θ)/(2θ⁵)."""
-    small = theta2 < (0.05 if theta2.dtype == torch.float64 else 0.5)
-    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+# Taylor coefficients (in θ²) of b = (1 − cos θ)/θ², k1 = (θ − sin θ)/θ³ (J's c),
+# k2 = (θ² + 2 cos θ − 2)/(2θ⁴) and k3 = (2θ − 3 sin θ + θ cos θ)/(2θ⁵)
+_SERIES_B = (1 / 2, -1 / 24, 1 / 720, -1 / 40320, 1 / 3628800)
+_SERIES_K1 = (1 / 6, -1 / 120, 1 / 5040, -1 / 362880, 1 / 39916800)
+_SERIES_K2 = (1 / 24, -1 / 720, 1 / 40320, -1 / 3628800, 1 / 479001600)
+_SERIES_K3 = (1 / 120, -1 / 2520, 1 / 120960, -1 / 9979200, 1 / 1245404160)
+
+
+def _jac_coeffs(theta2: torch.Tensor, need_b: bool = True) -> tuple[torch.Tensor | None, ...]:
+    """``(b, k1, k2, k3)`` of J_l(ω) = I + b ω̂ + k1 ω̂² and of Q (see :func:`_q_entries`).
+
+    One switch and one sin/cos for all four: the series (to θ⁸) below θ² = 0.05 (float64) / 0.5,
+    the closed forms above, safe-``where`` style (closed forms on θ² + 1 where the series is taken,
+    series on θ² clamped to the switch elsewhere) and selected by exact 0/1 blends.
+    """
+    sw = 0.05 if theta2.dtype == torch.float64 else 0.5
+    small, big = _so3._mask(theta2 < sw, theta2.dtype)
+    t2 = theta2 + small
     th = torch.sqrt(t2)
     s, co = torch.sin(th), torch.cos(th)
-    x = theta2
-    k1 = torch.where(small, 1 / 6 - x / 120 + x * x / 5040 - x ** 3 / 362880 + x ** 4 / 39916800,
-                     (th - s) / (t2 * th))
-    k2 = torch.where(small, 1 / 24 - x / 720 + x * x / 40320 - x ** 3 / 3628800 + x ** 4 / 479001600,
-                     (t2 + 2 * co - 2) / (2 * t2 * t2))
-    k3 = torch.where(small, 1 / 120 - x / 2520 + x * x / 120960 - x ** 3 / 9979200 + x ** 4 / 1245404160,
-                     (2 * th - 3 * s + th * co) / (2 * t2 * t2 * th))
-    return k1, k2, k3
+    x = torch.clamp(theta2, max=sw)
+    t4 = t2 * t2
+    blend = _so3._blend
+    b = blend(small, big, horner(x, _SERIES_B), (1 - co) / t2) if need_b else None
+    k1 = blend(small, big, horner(x, _SERIES_K1), (th - s) / (t2 * th))
+    k2 = blend(small, big, horner(x, _SERIES_K2), (t2 + 2 * co - 2) / (2 * t4))
+    k3 = blend(small, big, horner(x, _SERIES_K3), (2 * th - 3 * s + th * co) / (2 * t4 * th))
+    return b, k1, k2, k3
 
 
-def _Q(v: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """The off-diagonal block Q(v, ω) of the left Jacobian of SE(3) (Solà Eq. 180).
+def _q_entries(v, w, theta2, k1, k2, k3, sign: float, scale: float = 1.0) -> tuple[torch.Tensor, ...]:
+    """Row-major entries of ``scale · Q(sign·v, sign·ω)``, Q the off-diagonal block of J_l (Solà Eq. 180).
 
-    Eq. 180 is a sum of products of ω̂ and v̂; with ``â b̂ = b aᵀ − (a·b) I``, ``ω̂ v̂ ω̂ = −s ω̂`` and
-    ``ω̂² = ω ωᵀ − θ² I`` (s = ω·v) it collapses to outer products, with no 3×3 matrix product:
-    ``Q = (½ v − k1 s ω + k2 (2 s ω − θ² v))^ + k1 (v ωᵀ + ω vᵀ) − 2 k3 s ω ωᵀ + 2 s (k3 θ² − k1) I``.
+    Eq. 180 is a sum of products of ω̂ and v̂; with ``â b̂ = b aᵀ − (a·b) I``, ``ω̂ v̂ ω̂ = −σ ω̂`` and
+    ``ω̂² = ω ωᵀ − θ² I`` (σ = ω·v) it collapses to outer products, with no 3×3 matrix product:
+    ``Q = û + k1 (v ωᵀ + ω vᵀ) − 2 k3 σ ω ωᵀ + 2 σ (k3 θ² − k1) I`` with
+    ``u = (½ − k2 θ²) v + (2 k2 − k1) σ ω``.  Under ξ → −ξ only û changes sign.
     """
-    theta2 = (w * w).sum(-1)
-    k1, k2, k3 = (k.unsqueeze(-1) for k in _q_coeffs(theta2))
-    s = (w * v).sum(-1, keepdim=True)
-    t2 = theta2.unsqueeze(-1)
-    skew = _so3._hat(0.5 * v - k1 * s * w + k2 * (2 * s * w - t2 * v))
-    vw = v.unsqueeze(-1) * w.unsqueeze(-2)
-    sym = k1.unsqueeze(-1) * (vw + vw.transpose(-1, -2)) - (2 * k3 * s).unsqueeze(-1) * (
-        w.unsqueeze(-1) * w.unsqueeze(-2))
-    return skew + sym + (2 * s * (k3 * t2 - k1)).unsqueeze(-1) * _so3._eye_like(w)
+    vx, vy, vz = v
+    wx, wy, wz = w
+    sig = wx * vx + wy * vy + wz * vz
+    al = (sign * scale) * (0.5 - k2 * theta2)
+    be = ((sign * scale) * (2 * k2 - k1)) * sig
+    ux, uy, uz = (torch.addcmul(al * vc, be, wc) for vc, wc in ((vx, wx), (vy, wy), (vz, wz)))
+    p = (-2 * scale) * k3 * sig
+    dd = (2 * scale) * sig * (k3 * theta2 - k1)
+    if scale != 1.0:
+        k1 = scale * k1
+    gx, gy, gz = k1 * vx, k1 * vy, k1 * vz
+    hx, hy = p * wx, p * wy
+    # symmetric part: S_ij = k1 (v_i ω_j + ω_i v_j) + p ω_i ω_j (+ dd on the diagonal)
+    sxy = torch.addcmul(torch.addcmul(gx * wy, gy, wx), hx, wy)
+    sxz = torch.addcmul(torch.addcmul(gx * wz, gz, wx), hx, wz)
+    syz = torch.addcmul(torch.addcmul(gy * wz, gz, wy), hy, wz)
+    q00 = torch.addcmul(dd, torch.add(hx, gx, alpha=2), wx)
+    q11 = torch.addcmul(dd, torch.add(hy, gy, alpha=2), wy)
+    q22 = torch.addcmul(dd, torch.addcmul(gz * 2, p, wz), wz)
+    return (q00, sxy - uz, sxz + uy,
+            sxy + uz, q11, syz - ux,
+            sxz - uy, syz + ux, q22)
 
 
-def _jac_l(xi: torch.Tensor) -> torch.Tensor:
-    v, w = xi[..., :3], xi[..., 3:]
-    J = _so3._jac(w, 1.0)
-    return torch.cat((torch.cat((J, _Q(v, w)), -1), torch.cat((torch.zeros_like(J), J), -1)), -2)
+def _six_by_six(D: tuple[torch.Tensor, ...], T: tuple[torch.Tensor, ...], shape) -> torch.Tensor:
+    """[[D, T], [0, D]] ``(*shape, 6, 6)`` from the row-major entries of the 3×3 blocks, one stack."""
+    z = torch.zeros_like(D[0])
+    rows = (*D[0:3], *T[0:3], *D[3:6], *T[3:6], *D[6:9], *T[6:9],
+            z, z, z, *D[0:3], z, z, z, *D[3:6], z, z, z, *D[6:9])
+    return torch.stack(rows, -1).reshape(*shape, 6, 6)
 
 
-def _jac_l_inv(xi: torch.Tensor) -> torch.Tensor:
-    v, w = xi[..., :3], xi[..., 3:]
-    Ji = _so3._jac_inv(w, 1.0)
-    top_right = -Ji @ _Q(v, w) @ Ji
-    return torch.cat((torch.cat((Ji, top_right), -1), torch.cat((torch.zeros_like(Ji), Ji), -1)), -2)
+def _jac(xi: torch.Tensor, sign: float) -> torch.Tensor:
+    """J_l(sign·ξ) = [[J_l(sign·ω), Q(sign·v, sign·ω)], [0, J_l(sign·ω)]], entry by entry (SoA)."""
+    vx, vy, vz, wx, wy, wz = _so3._soa(xi, 6)
+    theta2 = wx * wx + wy * wy + wz * wz
+    b, k1, k2, k3 = _jac_coeffs(theta2)
+    J = _so3._sym_skew_entries(wx, wy, wz, 1 - k1 * theta2, sign * b, k1)
+    Q = _q_entries((vx, vy, vz), (wx, wy, wz), theta2, k1, k2, k3, sign)
+    return _six_by_six(J, Q, xi.shape[:-1])
+
+
+def _jac_inv(xi: torch.Tensor, sign: float) -> torch.Tensor:
+    """J_l(sign·ξ)⁻¹ = [[J⁻¹, −J⁻¹ Q J⁻¹], [0, J⁻¹]] (block-triangular inverse), J = J_l(sign·ω)."""
+    vx, vy, vz, wx, wy, wz = _so3._soa(xi, 6)
+    theta2 = wx * wx + wy * wy + wz * wz
+    d = _so3._coeffs(theta2, "d")["d"]
+    _, k1, k2, k3 = _jac_coeffs(theta2, need_b=False)
+    Ji = _so3._sym_skew_entries(wx, wy, wz, 1 - d * theta2, -0.5 * sign, d)
+    minus_Q = _q_entries((vx, vy, vz), (wx, wy, wz), theta2, k1, k2, k3, sign, scale=-1.0)
+    return _six_by_six(Ji, _so3._mat3(Ji, _so3._mat3(minus_Q, Ji)), xi.shape[:-1])
 
 
 def left_jacobian(xi: torch.Tensor) -> torch.Tensor:
     """J_l(ξ) ``(*, 6, 6)``: ``exp(ξ + δ) ≈ exp(J_l δ) exp(ξ)``."""
     check_tensor(xi, (6,), "xi", "se3.left_jacobian")
-    return _jac_l(xi)
+    return _jac(xi, 1.0)
 
 
 def right_jacobian(xi: torch.Tensor) -> torch.Tensor:
     """J_r(ξ) = J_l(−ξ) ``(*, 6, 6)``: ``exp(ξ + δ) ≈ exp(ξ) exp(J_r δ)``."""
     check_tensor(xi, (6,), "xi", "se3.right_jacobian")
-    return _jac_l(-xi)
+    return _jac(xi, -1.0)
 
 
 def left_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
     """J_l(ξ)⁻¹ in closed form (block-triangular inverse)."""
     check_tensor(xi, (6,), "xi", "se3.left_jacobian_inv")
-    return _jac_l_inv(xi)
+    return _jac_inv(xi, 1.0)
 
 
 def right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
     """J_r(ξ)⁻¹ = J_l(−ξ)⁻¹ in closed form."""
     check_tensor(xi, (6,), "xi", "se3.right_jacobian_inv")
-    return _jac_l_inv(-xi)
+    return _jac_inv(xi, -1.0)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -1,9 +1,12 @@
 """``liecontrol bench lie``: torchlie's group operations against pypose and roma, in one run.
 
-For every group (so3, se3), op (exp, log, compose, act, inverse, Jr), dtype and batch size, each
-library is timed on its own native representation (pypose: quaternion LieTensors; roma and torchlie:
-rotation/homogeneous matrices) as the median of ``--repeats`` runs after warm-up, and the ratio
-anchor/ours is reported.  ``ours_compiled_ms`` is the same torchlie function under
+For every group (so3, se3), op (exp, log, compose, act, inverse, and the Jacobians Jr, Jl, Jr_inv,
+Jl_inv), dtype and batch size, each library is timed on its own native representation (pypose:
+quaternion LieTensors; roma and torchlie: rotation/homogeneous matrices) as the median of ``--repeats``
+runs after warm-up, and the ratio anchor/ours is reported.  pypose has a public Jacobian only for
+so(3) (``LieTensor.Jr``); the other Jacobian anchors are the functions its ``Jinvp`` is built on
+(``pypose.lietensor.operation.so3_Jl``/``so3_Jl_inv``/``se3_Jl``/``se3_Jl_inv``; J_r(x) = J_l(−x),
+with −x computed outside the timed call).  ``ours_compiled_ms`` is the same torchlie function under
 ``torch.compile(fullgraph=True)`` — something neither anchor supports.  The round-trip error
 ``max |exp(log(X)) − X|`` is measured per library on rotation angles uniform in [0, π)
 (``roundtrip_err``) and on angles within 1e-9..1e-3 of 0 and π (``roundtrip_err_edges``), always in
@@ -22,7 +25,7 @@ from torchlie import se3, so3
 
 __all__ = ["add_arguments", "run", "measure"]
 
-OPS = ("exp", "log", "compose", "act", "inverse", "Jr")
+OPS = ("exp", "log", "compose", "act", "inverse", "Jr", "Jl", "Jr_inv", "Jl_inv")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -81,6 +84,9 @@ class _Ours:
             "act": (m.act, (X, p)),
             "inverse": (m.inverse, (X,)),
             "Jr": (m.right_jacobian, (x,)),
+            "Jl": (m.left_jacobian, (x,)),
+            "Jr_inv": (m.right_jacobian_inv, (x,)),
+            "Jl_inv": (m.left_jacobian_inv, (x,)),
         }
 
     def roundtrip(self, X):
@@ -103,17 +109,24 @@ class _Pypose:
         return X.matrix()
 
     def fns(self, X, Y, x, p):
+        from pypose.lietensor import operation as op
+
         pp = self.pp
         xl = pp.so3(x) if self.group == "so3" else pp.se3(x)
+        jl, jl_inv = (op.so3_Jl, op.so3_Jl_inv) if self.group == "so3" else (op.se3_Jl, op.se3_Jl_inv)
         out = {
             "exp": (lambda a: a.Exp(), (xl,)),
             "log": (lambda a: a.Log(), (X,)),
             "compose": (lambda a, b: a @ b, (X, Y)),
             "act": (lambda a, b: a.Act(b), (X, p)),
             "inverse": (lambda a: a.Inv(), (X,)),
+            "Jr": (jl, (-x,)),
+            "Jl": (jl, (x,)),
+            "Jr_inv": (jl_inv, (-x,)),
+            "Jl_inv": (jl_inv, (x,)),
         }
         if self.group == "so3":
-            out["Jr"] = (lambda a: a.Jr(), (xl,))
+            out["Jr"] = (lambda a: a.Jr(), (xl,))  # the public one
         return out
 
     def roundtrip(self, X):

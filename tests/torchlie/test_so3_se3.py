@@ -132,6 +132,27 @@ def test_jacobians_near_zero_use_exact_series(name):
         assert (mod.left_jacobian_inv(x) - torch.linalg.inv(Jl)).abs().max() < 1e-13
 
 
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_jacobians_continuous_across_the_series_switch(name):
+    """Both sides of every small-angle switch (θ² = 0.01, 0.05 in float64; 0.1, 0.5 in float32) agree
+    with the series reference Σ_k ad_x^k/(k+1)! (closed forms lose ~eps/θ² just above a switch)."""
+    mod, d, _ = GROUPS[name]
+    axis = torch.nn.functional.normalize(torch.linspace(0.3, 1.0, 3, dtype=F64), dim=0)
+    for dtype, switches, tol in ((F64, (1e-2, 5e-2), 5e-14), (F32, (1e-1, 5e-1), 1e-6)):
+        for sw in switches:
+            for th2 in (sw * (1 - 1e-6), sw, sw * (1 + 1e-6)):
+                w = math.sqrt(th2) * axis
+                x = w if d == 3 else torch.cat((torch.tensor([0.3, -0.7, 1.1], dtype=F64), w))
+                A = mod.ad(x)
+                Jl = sum(torch.linalg.matrix_power(A, k) / float(math.factorial(k + 1)) for k in range(30))
+                Jr = sum(torch.linalg.matrix_power(-A, k) / float(math.factorial(k + 1)) for k in range(30))
+                xd = x.to(dtype)
+                for f, ref in ((mod.left_jacobian, Jl), (mod.right_jacobian, Jr),
+                               (mod.left_jacobian_inv, torch.linalg.inv(Jl)),
+                               (mod.right_jacobian_inv, torch.linalg.inv(Jr))):
+                    assert (f(xd).double() - ref).abs().max() < tol, (dtype, th2, f.__name__)
+
+
 # ---------------------------------------------------------------------------------------------- axioms
 
 @settings(max_examples=25, deadline=None)
@@ -189,6 +210,26 @@ def test_act_and_inverse():
     cloud = torch.randn(7, 5, 3, generator=g, dtype=F64)
     assert se3.act(X, cloud).shape == (7, 5, 3)
     assert (se3.act(X[0], cloud) - torch.stack([se3.act(X[0], c) for c in cloud])).abs().max() == 0
+
+
+def test_se3_inverse_batches_strides_and_exact_bottom_row():
+    g = torch.Generator().manual_seed(2)
+    X = se3.random(2, 3, 5, generator=g, dtype=F64)
+    Xi = se3.inverse(X)
+    assert Xi.shape == X.shape and Xi.is_contiguous()
+    assert (Xi - torch.linalg.inv(X)).abs().max() < 1e-12
+    assert (se3.inverse(Xi) - X).abs().max() < 1e-12
+    # non-contiguous input and a single matrix
+    Xs = X.transpose(0, 2)
+    assert (se3.inverse(Xs) - torch.linalg.inv(Xs)).abs().max() < 1e-12
+    assert (se3.inverse(X[1, 2, 3]) - Xi[1, 2, 3]).abs().max() == 0
+    # the bottom row is the constant [0, 0, 0, 1], whatever the input's bottom row holds
+    Y = X.clone()
+    Y[..., 3, :] = 7.0
+    assert (se3.inverse(Y)[..., 3, :] == torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=F64)).all()
+    assert (se3.inverse(Y)[..., :3, :] == Xi[..., :3, :]).all()
+    for dtype in (F32, F64):
+        assert se3.inverse(X.to(dtype)).dtype == dtype
 
 
 def test_random_is_uniform_on_so3():
@@ -303,6 +344,33 @@ def test_vmap_jacrev_and_compile(name, gen):
     f = torch.compile(lambda a, b: mod.log(mod.compose(mod.exp(a), b)), fullgraph=True, dynamic=False)
     out = f(x, X)
     assert torch.allclose(out, mod.log(mod.compose(mod.exp(x), X)), atol=1e-12)
+
+
+@pytest.mark.parametrize("name", ["so3", "se3"])
+def test_inverse_compose_and_jacobians_under_transforms(name, gen):
+    """vmap (batched and broadcast arguments), jacrev and compile(fullgraph) of the kernels that
+    assemble their output from per-entry rows (the Jacobians) or write into their own output (inverse)."""
+    mod, d, n = GROUPS[name]
+    x = tangents(mod, 5, gen)[-6:]
+    X, Y = mod.exp(x), mod.exp(x.flip(0))
+    vmap, jacrev = torch.func.vmap, torch.func.jacrev
+    assert (vmap(mod.inverse)(X) - mod.inverse(X)).abs().max() < 1e-15
+    assert (vmap(mod.compose)(X, Y) - mod.compose(X, Y)).abs().max() < 1e-15
+    assert (vmap(mod.compose, in_dims=(None, 0))(X[0], Y) - mod.compose(X[0], Y)).abs().max() < 1e-15
+    # jacrev of inverse along the group (X exp(δ)), where it must agree with the matrix inverse
+    def along(inv):
+        return vmap(jacrev(lambda dl, Z: inv(mod.compose(Z, mod.exp(dl)))))(torch.zeros_like(x), X)
+    assert (along(mod.inverse) - along(torch.linalg.inv)).abs().max() < 1e-12
+    fns = (mod.left_jacobian, mod.right_jacobian, mod.left_jacobian_inv, mod.right_jacobian_inv)
+    for f in fns:
+        assert (vmap(f)(x) - f(x)).abs().max() < 1e-15
+        J = vmap(jacrev(f))(x)
+        assert J.shape == (6, d, d, d) and torch.isfinite(J).all()
+        assert (J[2] - torch.autograd.functional.jacobian(f, x[2])).abs().max() < 1e-12
+    torch._dynamo.reset()
+    for f, args in [(mod.inverse, (X,)), *((f, (x,)) for f in fns)]:
+        cf = torch.compile(f, fullgraph=True, dynamic=False)
+        assert (cf(*args) - f(*args)).abs().max() < 1e-12
 
 
 def test_dtype_and_device_follow_inputs():
