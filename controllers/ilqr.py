@@ -99,8 +99,8 @@ class ILQROptions:
         max_iter: iterations at most.
         tol: a step with ``max_t ‖k_t‖∞ ≤ tol · (1 + ‖u‖∞)`` (Δ_min of Algorithms 4-5) is negligible: the
             element stops (``STALLED`` unless certified, below); default by dtype.
-        tol_cost: an accepted step that lowers the cost by less than ``tol_cost · |J|`` twice in a row
-            stops the element the same way.
+        tol_cost: an accepted step that lowers the cost by less than ``tol_cost · |J|`` stops the element
+            if the new point is certified (below); otherwise it goes on to a negligible step.
         tol_kkt: the certificate behind ``CONVERGED``: the projected reduced gradient
             ``max_t ‖u_t − clip(u_t − ∇_{u_t} J)‖∞`` (``∇_u J`` through the dynamics, by the costates
             ``λ``) is at most ``tol_kkt`` times the largest of the terms ``|∂l/∂u_t| + |B_tᵀ λ_{t+1}|``
@@ -853,11 +853,12 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         u_tm = u.movedim(-2, 0)
         # the certificate at the current point decides how an element that stops here ends
         cert = _kkt_residual(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm) <= tol_kkt
-        # the last accepted step barely lowered the cost: done if certified, stalled the second time
+        # the last accepted step barely lowered the cost: done if certified here; otherwise keep taking
+        # steps (a decrease below tol_cost·|J| can still leave a gradient well above tol_kkt on a flat
+        # valley; Newton steps remove it) until the step itself is negligible
         done = active & (ntiny >= 1) & cert
-        stall = active & (ntiny >= 2) & ~cert
-        reason = torch.where(done, int(Reason.CONVERGED), torch.where(stall, int(Reason.STALLED), reason))
-        active = active & ~done & ~stall
+        reason = torch.where(done, int(Reason.CONVERGED), reason)
+        active = active & ~done
         if not bool(active.any()):
             break
         dlo = None if lo is None else lo_tm - u_tm

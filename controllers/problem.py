@@ -8,6 +8,12 @@ Conventions (shared by every solver in :mod:`controllers`)
   ``c (*B, T, n)``.  Batch dims broadcast like torch; a time dim of size 1 broadcasts over time; a
   matrix without a time dim (``A (n, n)``, ``c (n,)``) is time-invariant and shared by the batch.
   To give a time-invariant matrix *per batch element* use a time dim of 1: ``A (B, 1, n, n)``.
+  **One broadcasting rule for every entry point** (``riccati.solve``/``lqr``, ``lifted``, ``ilqr``
+  in both formulations and all gradient modes, ``box_qp``, ``mpc``): the batch dims of every field,
+  of ``x0`` and of control limits (``(*B, T, m)``) broadcast against each other like torch shapes,
+  right-aligned; the solution has the broadcast batch shape, and a gradient has its input's own shape
+  (summed over the dims it was broadcast along).  Shapes that do not broadcast are a ``ValueError``
+  naming the fields (``tests/controllers/test_broadcasting.py``).
 * Quadratic cost (seed Eq. 59, *without* a factor 1/2, linear terms with a factor 2), per step::
 
       l_t = dx_tᵀ Q_t dx_t + du_tᵀ R_t du_t + 2 dx_tᵀ N_t du_t + 2 q_tᵀ dx_t + 2 r_tᵀ du_t

@@ -26,15 +26,22 @@ def _fields(seed: int, w: float, where: str) -> dict:
     g = torch.Generator().manual_seed(seed)
     r = lambda *s, sc=1.0: sc * torch.randn(*s, dtype=D, generator=g)  # noqa: E731
     Q = torch.zeros(T + 1, n, n, dtype=D)
+    M = r(T, m, m, sc=0.3)
+    R = torch.eye(m, dtype=D) + M @ M.mT
     if where == "terminal":
         Q[T] = w * torch.eye(n, dtype=D)
-    else:
+    elif where == "via":
         Q[T // 2] = w * torch.eye(n, dtype=D)
         Q[T] = 1e-2 * torch.eye(n, dtype=D)
-    M = r(T, m, m, sc=0.3)
+    else:  # "cond(R)": unit state precision, control weights with eigenvalues 1 and 1/w
+        Q[:] = torch.eye(n, dtype=D)
+        U = torch.linalg.qr(r(T, m, m))[0]
+        R = U @ torch.diag(torch.tensor([1.0, 1.0 / w], dtype=D)) @ U.mT
+        R = 0.5 * (R + R.mT)
     return dict(A=torch.eye(n, dtype=D) + r(T, n, n, sc=0.4), B=r(T, n, m), c=r(T, n, sc=0.3), Q=Q,
-                R=torch.eye(m, dtype=D) + M @ M.mT, N=r(T, n, m, sc=0.05), x_ref=r(T + 1, n),
-                u_ref=r(T, m, sc=0.5), q=r(T + 1, n, sc=0.5), r=r(T, m, sc=0.5), x0=r(n)), g
+                R=R, N=r(T, n, m, sc=0.05) if where != "cond(R)" else torch.zeros(T, n, m, dtype=D),
+                x_ref=r(T + 1, n), u_ref=r(T, m, sc=0.5), q=r(T + 1, n, sc=0.5), r=r(T, m, sc=0.5),
+                x0=r(n)), g
 
 
 def _loss_weights(g):
@@ -62,12 +69,12 @@ def _ours(f: dict, solver: str, wx, wu):
     return dict(zip(INPUTS, grads))
 
 
-def _entries(name: str, shape, g, k=2):
+def _entries(name: str, shape, g, where: str, k=2):
     """``k`` random entries; for the symmetric Q, R a symmetric pair is perturbed (see _ref)."""
     out = []
     for _ in range(k):
         idx = tuple(int(torch.randint(s, (), generator=g)) for s in shape)
-        if name == "Q":  # the precision's non-zero step
+        if name == "Q" and where != "cond(R)":  # the precision's non-zero steps
             idx = (T if idx[0] % 2 else T // 2, *idx[1:])
         out.append(idx)
     return out
@@ -98,6 +105,7 @@ def _ref(f, name, idx, wx, wu):
 CASES = [("riccati", w, where) for w in (1e-8, 1.0, 1e4, 1e8) for where in ("terminal", "via")]
 CASES += [("ilqr", w, where) for w in (1e4, 1e8) for where in ("terminal", "via")]
 CASES += [("ilqr", 1.0, "terminal")]
+CASES += [("riccati", w, "cond(R)") for w in (1e4, 1e8)]
 
 
 @pytest.mark.parametrize(("solver", "w", "where"), CASES)
@@ -107,7 +115,7 @@ def test_implicit_gradients_match_a_50_digit_reference(solver, w, where):
     ours = _ours(f, solver, wx, wu)
     for name in INPUTS:
         gr = ours[name]
-        for idx in _entries(name, f[name].shape, g):
+        for idx in _entries(name, f[name].shape, g, where):
             ref = _ref(f, name, idx, wx, wu)
             val = float(gr[idx])
             if name in ("Q", "R") and idx[-1] != idx[-2]:

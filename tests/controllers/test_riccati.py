@@ -287,3 +287,24 @@ def test_ls_recursive_gains_per_element_status(dtype):
     torch.testing.assert_close(Fm[:1], F0)
     if dtype == torch.float64:
         torch.testing.assert_close(K[0], riccati.solve(p).K[0], atol=1e-8, rtol=0)
+
+
+def test_unstable_long_horizon_against_50_digit_reference():
+    """An unstable A over T = 40: Riccati and the dense KKT solve match a 50-digit solve; the lifted
+    (transfer-matrix) least squares loses most of its digits here (S_u grows like ‖A‖^T), which is why
+    it is not used as an oracle on such problems."""
+    from mp_oracle import lq_cost
+
+    T, n = 40, 2
+    A = 1.15 * torch.tensor([[1.0, 0.1], [0.3, 1.05]], dtype=D).expand(T, n, n)
+    B = torch.tensor([[0.0], [0.1]], dtype=D).expand(T, n, 1)
+    Q, R = torch.eye(n, dtype=D).expand(T + 1, n, n), 0.01 * torch.eye(1, dtype=D).expand(T, 1, 1)
+    x0 = torch.tensor([1.0, -0.5], dtype=D)
+    mu = torch.randn(T + 1, n, dtype=D, generator=torch.Generator().manual_seed(0))
+    J, _, us = lq_cost(A, B, None, Q, R, x0, x_ref=mu)
+    u_ref = torch.tensor([[float(v) for v in row] for row in us], dtype=D)
+    p = LQProblem(LinearDynamics(A, B), QuadraticCost(Q, R, x_ref=mu), x0)
+    sol = riccati.solve(p)
+    torch.testing.assert_close(sol.u, u_ref, atol=1e-11, rtol=0)
+    torch.testing.assert_close(sol.cost, torch.tensor(float(J), dtype=D), atol=0, rtol=1e-12)
+    torch.testing.assert_close(dense_kkt(p)[1], u_ref, atol=1e-10, rtol=0)
