@@ -12,17 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["objective", "projected_gradient", "kkt_residual", "kkt_tolerance", "active_set_qp", "bvls_qp",
+__all__ = ["objective", "kkt_residual", "kkt_tolerance", "active_set_qp", "bvls_qp",
            "mp_kkt_check", "random_box_qp"]
 
 
 def objective(H: np.ndarray, g: np.ndarray, x: np.ndarray) -> float:
     return float(0.5 * x @ H @ x + g @ x)
-
-
-def projected_gradient(H, g, lo, hi, x) -> np.ndarray:
-    """``x − clip(x − ∇f(x), lo, hi)``: zero exactly at the KKT points of the box QP."""
-    return x - np.clip(x - (H @ x + g), lo, hi)
 
 
 def kkt_residual(H, g, lo, hi, x) -> float:
@@ -138,7 +133,8 @@ def mp_kkt_check(H, g, lo, hi, x, dps: int = 40) -> tuple[float, float]:
 def random_box_qp(rng: np.random.Generator, m: int, cond: float, *, frac_on_bound: float = 0.4,
                   frac_unbounded: float = 0.1):
     """One strictly convex box QP with ``cond(H) = cond`` and a warm start with ``frac_on_bound`` of its
-    variables on a bound.  ``H = U diag(s) Uᵀ`` with Haar ``U`` and log-spaced ``s`` in ``[1/cond, 1]``
+    variables put on a bound (the others uniform in ``[-1, 1]`` projected on the box, which puts some more
+    there).  ``H = U diag(s) Uᵀ`` with Haar ``U`` and log-spaced ``s`` in ``[1/cond, 1]``
     (times a random overall scale); ``g`` is large enough that a good share of the bounds is active at
     the solution.  Each bound is ``±inf`` with probability ``frac_unbounded``.
 

@@ -294,6 +294,13 @@ def test_hard_family_reaches_the_optimum_with_certificates():
     assert not uncertified, uncertified
     assert n_total == 370 + len(OLD_NO_DESCENT)
     assert n_hard > 50  # many problems need several active-set changes
+    # the family: warm starts with 40 % of the variables put on a bound (the rest uniform in [-1, 1],
+    # projected on the box, which puts some more there), and unbounded components
+    x0s = np.concatenate([P[4] for probs, _, _ in _family() for P in probs])
+    los = np.concatenate([P[2] for probs, _, _ in _family() for P in probs])
+    his = np.concatenate([P[3] for probs, _, _ in _family() for P in probs])
+    assert 0.4 < np.mean((x0s == los) | (x0s == his)) < 0.6
+    assert np.mean(np.isinf(los)) > 0.05 and np.mean(np.isinf(his)) > 0.05
 
 
 @pytest.mark.parametrize("i", OLD_NO_DESCENT)
@@ -302,6 +309,41 @@ def test_problems_that_stalled_before(i):
     res = box_qp(*(torch.from_numpy(a) for a in (H, g, lo, hi, x0)))
     assert res.status.item() in (BoxQPStatus.CONVERGED, BoxQPStatus.ALL_CLAMPED)
     assert _rel_err(H, g, res.x.numpy(), objective(H, g, active_set_qp(H, g, lo, hi, x0))) <= 1e-8
+
+
+def _lifted_lq(rng, T: int, r: float = 1e-2, umax: float = 1.0):
+    """The box QP of a batch-form (condensed) LQ tracking problem: a lightly damped oscillator driven over T
+    steps towards a target it cannot reach within the control bound, so nearly every control saturates."""
+    dt = 0.1
+    A = np.array([[1.0, dt], [-dt * 9.81 * rng.uniform(0.5, 1.5), 0.99]])
+    B = np.array([0.0, dt])
+    powers = [np.eye(2)]
+    for _ in range(T):
+        powers.append(A @ powers[-1])
+    S = np.zeros((2 * T, T))  # x_{t+1} = A^{t+1} x0 + Σ_k A^{t-k} B u_k
+    for t in range(T):
+        for k in range(t + 1):
+            S[2 * t:2 * t + 2, k] = powers[t - k] @ B
+    x0 = rng.standard_normal(2)
+    drift = np.concatenate([powers[t + 1] @ x0 for t in range(T)])
+    Q = np.tile([1.0, 0.1], T)
+    H = S.T @ (Q[:, None] * S) + r * np.eye(T)
+    g = S.T @ (Q * (drift - np.tile([np.pi, 0.0], T)))
+    return 0.5 * (H + H.T), g, np.full(T, -umax), np.full(T, umax)
+
+
+def test_many_active_bounds_long_horizon():
+    """Batch-iLQR-like QPs (100 controls, ~95 % of them saturated, cond up to 7e5): a feasible projected
+    Newton method changes a few bounds per iteration and ran out of iterations (MAX_ITERATIONS at 100) on
+    the first; with the Cauchy-point and active-set Newton points all are solved well within the budget."""
+    rng = np.random.default_rng(0)
+    probs = [_lifted_lq(rng, 100) for _ in range(4)]
+    res = box_qp(*(torch.from_numpy(np.stack(a)) for a in zip(*probs)))
+    assert bool(res.converged.all()), res.status
+    assert float(res.clamped.double().mean()) > 0.9
+    for b, (H, g, lo, hi) in enumerate(probs):
+        fref = objective(H, g, active_set_qp(H, g, lo, hi))
+        assert _rel_err(H, g, res.x[b].numpy(), fref) <= 1e-8
 
 
 def test_success_iff_certificate_and_failures_say_why():
