@@ -232,6 +232,26 @@ def test_se3_inverse_batches_strides_and_exact_bottom_row():
         assert se3.inverse(X.to(dtype)).dtype == dtype
 
 
+def test_compose_same_function_in_every_dtype():
+    """float32 (rows of multiply-adds) and float64 (matmul) give one function: the SE(3) product of the
+    top 3×4 blocks with the bottom row exactly [0, 0, 0, 1]; the identity composes exactly."""
+    g = torch.Generator().manual_seed(4)
+    X, Y = se3.random(6, generator=g, dtype=F64), se3.random(6, generator=g, dtype=F64)
+    X[..., 3, :], Y[..., 3, :] = 5.0, -3.0  # ignored
+    ref = torch.cat((X[..., :3, :3] @ Y[..., :3, :] + torch.cat((torch.zeros(6, 3, 3, dtype=F64),
+                                                                X[..., :3, 3:]), -1),
+                     torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=F64).expand(6, 1, 4)), -2)
+    for dtype, tol in ((F64, 1e-14), (F32, 1e-5)):
+        Z = se3.compose(X.to(dtype), Y.to(dtype))
+        assert (Z.double() - ref).abs().max() < tol
+        assert (Z[..., 3, :] == torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype)).all()
+        eye = se3.identity(6, dtype=dtype)
+        assert torch.equal(se3.compose(eye, Y.to(dtype))[..., :3, :], Y.to(dtype)[..., :3, :])
+        R, S = so3.random(6, generator=g, dtype=dtype), so3.random(6, generator=g, dtype=dtype)
+        assert (so3.compose(R, S).double() - R.double() @ S.double()).abs().max() < tol
+        assert torch.equal(so3.compose(so3.identity(6, dtype=dtype), R), R)
+
+
 def test_random_is_uniform_on_so3():
     """Haar measure: the angle density is (1 − cos θ)/π, so E[θ] = π/2 + 2/π and E[R] = 0."""
     R = so3.random(40000, generator=torch.Generator().manual_seed(7), dtype=F64)
@@ -357,6 +377,14 @@ def test_inverse_compose_and_jacobians_under_transforms(name, gen):
     assert (vmap(mod.inverse)(X) - mod.inverse(X)).abs().max() < 1e-15
     assert (vmap(mod.compose)(X, Y) - mod.compose(X, Y)).abs().max() < 1e-15
     assert (vmap(mod.compose, in_dims=(None, 0))(X[0], Y) - mod.compose(X[0], Y)).abs().max() < 1e-15
+    # float32 takes the row-by-row path on CPU (float64 a matmul): same transforms, same values
+    X32, Y32 = X.float(), Y.float()
+    for dims in ((0, 0), (0, None), (None, 0)):
+        a, b = (X32 if dims[0] == 0 else X32[0]), (Y32 if dims[1] == 0 else Y32[0])
+        assert (vmap(mod.compose, in_dims=dims)(a, b) - mod.compose(a, b)).abs().max() == 0
+    Jc32 = vmap(jacrev(mod.compose, argnums=(0, 1)))(X32, Y32)
+    Jc64 = vmap(jacrev(mod.compose, argnums=(0, 1)))(X, Y)
+    assert all((a.double() - b).abs().max() < 1e-5 for a, b in zip(Jc32, Jc64))
     # jacrev of inverse along the group (X exp(δ)), where it must agree with the matrix inverse
     def along(inv):
         return vmap(jacrev(lambda dl, Z: inv(mod.compose(Z, mod.exp(dl)))))(torch.zeros_like(x), X)
