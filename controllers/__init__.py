@@ -3,22 +3,28 @@
 Submodules (loaded on first use, ``controllers.riccati``):
 
 =============  =====================================================================================
-``problem``    frozen dataclasses: dynamics, quadratic costs, LQ problems, solutions with per-element status
+``dynamics``   the ``System`` protocol, linear/nonlinear dynamics, rollout, Jacobians, linearization
+``costs``      the ``Cost`` protocol and the one cost convention; quadratic/residual costs, derivatives,
+               cost modules for ``MPCPolicy``
+``problem``    LQ problems and solutions, per-element status (``Reason``), ``GradMode``
 ``lifted``     batch least-squares LQT with transfer matrices S_x, S_u (seed 004 §7, Eq. 61-65), oracle
-``riccati``    recursive Riccati LQR/LQT with feedback gains (§7.4-7.6)
-``implicit``   implicit (KKT / backward Riccati) gradients of the LQ solution
+``riccati``    recursive Riccati LQR/LQT with feedback gains (§7.4-7.6); ``prepare`` for re-solves
+``implicit``   implicit (KKT) gradients of the LQ solution and of iLQR's
 ``basis``      piecewise, RBF, Bernstein and Fourier basis functions (§6)
-``linearize``  Jacobians of batched nonlinear dynamics along a trajectory (torch.func or analytic)
 ``ilqr``       iLQR (batch and recursive) with control limits (§8)
 ``boxqp``      batched box-constrained QP (projected Newton)
-``mpc``        receding-horizon MPC and the ``MPCPolicy`` module
+``mpc``        receding-horizon MPC, ``MPCState`` and the ``MPCPolicy`` module
 ``systems``    system models
 =============  =====================================================================================
+
+Private: ``_validate`` (argument checks), ``_lq_kernels`` (the Riccati sweeps shared by ``riccati`` and
+``implicit``).  Imports flow ``mpc → ilqr → implicit → _lq_kernels`` and ``riccati → implicit``, with
+``dynamics``/``costs``/``problem`` below every solver.
 """
 
 import importlib
 
-__all__ = ["problem", "lifted", "riccati", "implicit", "basis", "linearize",
+__all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis",
            "ilqr", "boxqp", "mpc", "systems"]
 
 

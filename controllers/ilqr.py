@@ -30,18 +30,19 @@ control-limited problem, with ``∇_u J`` through the dynamics by the costates �
 :attr:`ILQROptions.tol_kkt` (relative) at the returned point; an element that stopped elsewhere is
 ``STALLED``, and the residual itself is returned (:attr:`ILQRSolution.kkt_residual`).
 
-Gradients (:class:`GradMode`).  ``IMPLICIT`` (default): the solver runs without a graph; at the returned
-point ``z* = (x*, u*)`` with costates ``λ*`` the stationarity conditions ``∇_z L(z*, λ*; θ) = 0`` and the
-dynamics ``c(z*; θ) = 0`` (clamped controls fixed on their bounds) define ``z*(θ)`` implicitly, and
+Gradients (:class:`~controllers.problem.GradMode`). ``IMPLICIT`` (default): the solver runs without a
+graph; at the returned point ``z* = (x*, u*)`` with costates ``λ*`` the stationarity conditions ``∇_z
+L(z*, λ*; θ) = 0`` and the dynamics ``c(z*; θ) = 0`` (clamped controls fixed on their bounds) define
+``z*(θ)`` implicitly, and
 
     dz*/dθ = -K⁻¹ [∂∇_z L/∂θ ; ∂c/∂θ],      K = [[∇²_zz L, ∇_z cᵀ], [∇_z c, 0]],
 
-which is the derivative of one Newton step on the KKT system — an LQ problem on the linearization with
-the exact Lagrangian Hessian, solved by the Riccati machinery of :mod:`controllers.riccati` (its own
-implicit backward).  Memory is O(T) and the cost is independent of the number of iLQR iterations; θ is
+which is the derivative of one Newton step on the KKT system — an LQ problem on the linearization with the
+exact Lagrangian Hessian, solved by :func:`controllers.implicit.ilqr_implicit` with the LQ kernels (and their
+own implicit backward).  Memory is O(T) and the cost is independent of the number of iLQR iterations; θ is
 anything ``x0``, the cost or the dynamics depend on (references, weights, a pendulum's length...).
-``UNROLL``: autograd through every iteration.  ``NONE``: no graph.  Elements that did not converge
-still get the implicit formula at their last iterate and are flagged in ``status`` — never detached.
+``UNROLLED``: autograd through every iteration.  ``NONE``: no graph.  Elements that did not converge still get
+the implicit formula at their last iterate and are flagged in ``status`` — never detached.
 """
 
 from __future__ import annotations
@@ -49,29 +50,31 @@ from __future__ import annotations
 import contextlib
 import enum
 import math
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from controllers._validate import broadcast_batch, enum_arg, time_major
 from controllers.boxqp import box_qp, masked_hessian
-from controllers.problem import (
+from controllers.costs import Cost, QuadraticCost, cost_derivatives
+from controllers.dynamics import (
     LinearDynamics,
-    NonlinearDynamics,
-    QuadraticCost,
-    Reason,
-    SolverStatus,
-    enum_arg,
+    System,
+    check_system,
+    has_analytic_jacobian,
+    rollout,
+    trajectory_jacobians,
 )
+from controllers.implicit import ilqr_implicit
+from controllers.lifted import transfer_matrices
+from controllers.problem import GradMode, Reason, SolverStatus
 
 __all__ = [
     "ILQRMethod",
-    "GradMode",
     "ILQRProblem",
     "ILQRSolution",
     "ILQROptions",
-    "ResidualCost",
     "ilqr",
 ]
 
@@ -81,14 +84,6 @@ class ILQRMethod(str, enum.Enum):
 
     RECURSIVE = "recursive"  #: Algorithm 5: backward Riccati pass, gains, forward pass (Eq. 89-94)
     BATCH = "batch"  #: Algorithm 4: Gauss-Newton over the whole control sequence (Eq. 87 / 108)
-
-
-class GradMode(str, enum.Enum):
-    """How gradients reach ``x0``, cost and dynamics parameters."""
-
-    IMPLICIT = "implicit"  #: implicit function theorem at the solution, one LQ solve (O(T) memory)
-    UNROLL = "unroll"  #: autograd through every iteration
-    NONE = "none"  #: no graph
 
 
 @dataclass(frozen=True)
@@ -129,38 +124,28 @@ class ILQROptions:
 # --------------------------------------------------------------------------------------------------
 
 
-def _is_system(d) -> bool:
-    """A time-invariant system model (``controllers.systems``): ``step``/``jacobian`` broadcast over time."""
-    return (not isinstance(d, (LinearDynamics, NonlinearDynamics)) and callable(getattr(d, "step", None))
-            and callable(getattr(d, "jacobian", None)) and isinstance(getattr(d, "n", None), int)
-            and isinstance(getattr(d, "m", None), int))
-
-
-def _shape(v) -> object:
-    return tuple(v.shape) if isinstance(v, Tensor) else v
-
-
 @dataclass(frozen=True, eq=False)
 class ILQRProblem:
     """A batched nonlinear optimal-control problem with box control limits.
 
     Args:
-        dynamics: :class:`~controllers.problem.NonlinearDynamics`,
-            :class:`~controllers.problem.LinearDynamics`
-            or a time-invariant system model from :mod:`controllers.systems` (its Jacobians are then
-            evaluated for all time steps in one call).
-        cost: :class:`~controllers.problem.QuadraticCost` (analytic derivatives), or any object with
+        dynamics: a :class:`~controllers.dynamics.System`: :class:`~controllers.dynamics.LinearDynamics`,
+            :class:`~controllers.dynamics.NonlinearDynamics`, a model from :mod:`controllers.systems`
+            or any object with ``n``, ``m``, ``step`` (and optionally ``jacobian``, ``time_invariant``).
+        cost: a :class:`~controllers.costs.Cost`: :class:`~controllers.costs.QuadraticCost` (analytic
+            derivatives), :class:`~controllers.costs.ResidualCost`, or any object with
             ``evaluate(x (*B, T+1, n), u (*B, T, m)) -> (*B,)`` that is a sum of per-step terms
-            (derivatives by autograd), optionally with ``derivatives(x, u) -> (gx, gu, Hxx, Hux, Huu)``
-            (e.g. Gauss-Newton Hessians of a residual cost, Eq. 104-105).
+            (derivatives by autograd unless it has ``derivatives(x, u)``).
         x0: ``(*B, n)`` initial states.
         horizon: ``T``.
         u_lower, u_upper: control limits, ``None`` (unbounded), a float, or tensors broadcastable to
-            ``(*B, T, m)`` (e.g. ``(m,)``); ``±inf`` entries are unbounded.
+            ``(*B, T, m)`` (e.g. ``(m,)``); ``±inf`` entries are unbounded.  Floats with
+            ``u_lower > u_upper`` are a ``ValueError``; tensors are checked per element by the solver
+            (``Reason.INFEASIBLE_BOUNDS``), so that building a problem never waits for the device.
     """
 
-    dynamics: object
-    cost: object
+    dynamics: System
+    cost: Cost
     x0: Tensor
     horizon: int
     u_lower: Tensor | float | None = None
@@ -169,9 +154,7 @@ class ILQRProblem:
     def __post_init__(self) -> None:
         own = "ILQRProblem"
         d = self.dynamics
-        if not (isinstance(d, (LinearDynamics, NonlinearDynamics)) or _is_system(d)):
-            raise TypeError(f"{own}: field 'dynamics' must be a NonlinearDynamics, a LinearDynamics or a "
-                            f"system model with n, m, step and jacobian; got {type(d).__name__}")
+        check_system(d, own)
         if not callable(getattr(self.cost, "evaluate", None)):
             raise TypeError(f"{own}: field 'cost' must have evaluate(x, u), got {type(self.cost).__name__}")
         if not isinstance(self.x0, Tensor) or not self.x0.dtype.is_floating_point:
@@ -205,15 +188,10 @@ class ILQRProblem:
                 if v.dim() == 0 or v.shape[-1] not in (1, m):
                     raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, {m}), "
                                      f"got {tuple(v.shape)}")
-        try:
-            self.batch_shape  # noqa: B018
-        except RuntimeError as e:
-            raise ValueError(f"{own}: batch dims of x0 {tuple(self.x0.shape)}, dynamics, cost and limits "
-                             f"(u_lower {_shape(self.u_lower)}, u_upper {_shape(self.u_upper)}; limits "
-                             "are (*B, T, m)) do not broadcast") from e
-        lo, hi = self.bounds()
-        if lo is not None and bool((lo > hi).any()):
-            raise ValueError(f"{own}: u_lower must be <= u_upper everywhere")
+        self.batch_shape  # noqa: B018  (a ValueError naming the fields when they do not broadcast)
+        lo, hi = self.u_lower, self.u_upper
+        if isinstance(lo, (int, float)) and isinstance(hi, (int, float)) and lo > hi:
+            raise ValueError(f"{own}: u_lower ({lo}) must be <= u_upper ({hi})")
 
     @property
     def n(self) -> int:
@@ -237,15 +215,16 @@ class ILQRProblem:
 
     @property
     def batch_shape(self) -> torch.Size:
-        shapes = [self.x0.shape[:-1]]
+        shapes = {"x0": self.x0.shape[:-1]}
         if isinstance(self.cost, QuadraticCost):
-            shapes.append(self.cost.batch_shape)
+            shapes["cost"] = self.cost.batch_shape
         if isinstance(self.dynamics, LinearDynamics):
-            shapes.append(self.dynamics.batch_shape)
-        for v in (self.u_lower, self.u_upper):
+            shapes["dynamics"] = self.dynamics.batch_shape
+        for k in ("u_lower", "u_upper"):
+            v = getattr(self, k)
             if isinstance(v, Tensor) and v.dim() > 2:
-                shapes.append(v.shape[:-2])
-        return torch.broadcast_shapes(*shapes)
+                shapes[k] = v.shape[:-2]
+        return broadcast_batch("ILQRProblem", shapes, " (limits are (*B, T, m))")
 
     def bounds(self) -> tuple[Tensor | None, Tensor | None]:
         """``(lower, upper)`` as tensors broadcastable to ``(*B, T, m)``, or ``(None, None)``."""
@@ -285,174 +264,6 @@ class ILQRSolution:
     cost_history: Tensor
     mu: Tensor
     kkt_residual: Tensor
-
-
-@dataclass(frozen=True, eq=False)
-class ResidualCost:
-    """Quadratic cost on a residual of the state (seed 004 §9, Eq. 102 and 106)::
-
-        c(x, u) = Σ_{t=0}^{T} f(x_t)ᵀ Q_t f(x_t) + Σ_{t=0}^{T-1} u_tᵀ R_t u_t
-
-    with Gauss-Newton derivatives (Eq. 104-105): ``g_x = 2 Jᵀ Q f``, ``H_xx ≈ 2 Jᵀ Q J``, ``g_u = 2 R u``,
-    ``H_uu = 2 R``; with them the batch iLQR step is Eq. 108.  (Implicit gradients use exact Hessians.)
-
-    Args:
-        residual: ``f(x (*B, T+1, n)) -> (*B, T+1, p)``, applied per time step (no mixing across time or
-            batch), e.g. ``f(x) = f_ee(x) - μ`` for a reaching task.
-        Q: ``(p, p)``, ``(T+1, p, p)`` or ``(*B, T+1, p, p)`` precision (zero at non-via-point times).
-        R: ``(m, m)``, ``(T, m, m)`` or ``(*B, T, m, m)``.
-        jacobian: optional ``J(x (*B, T+1, n)) -> (*B, T+1, p, n)``; autograd otherwise.
-    """
-
-    residual: Callable[[Tensor], Tensor]
-    Q: Tensor
-    R: Tensor
-    jacobian: Callable[[Tensor], Tensor] | None = None
-
-    def __post_init__(self) -> None:
-        if not callable(self.residual):
-            raise TypeError("ResidualCost: field 'residual' must be callable f(x) -> (*B, T+1, p)")
-        for name in ("Q", "R"):
-            v = getattr(self, name)
-            if not isinstance(v, Tensor) or v.dim() < 2 or v.shape[-1] != v.shape[-2]:
-                raise ValueError(f"ResidualCost: field '{name}' must be a square (*B, T, k, k) or (k, k) "
-                                 "tensor")
-
-    def _jac(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        if self.jacobian is not None:
-            return self.residual(x), self.jacobian(x)
-        with torch.enable_grad():
-            xg = x.detach().requires_grad_(True)
-            f = self.residual(xg)
-            rows = [torch.autograd.grad(f[..., i].sum(), xg, retain_graph=True)[0]
-                    for i in range(f.shape[-1])]
-        return f.detach(), torch.stack(rows, -2)
-
-    def evaluate(self, x: Tensor, u: Tensor) -> Tensor:
-        f = self.residual(x)
-        cx = (f.unsqueeze(-2) @ self.Q @ f.unsqueeze(-1))[..., 0, 0].sum(-1)
-        cu = (u.unsqueeze(-2) @ self.R @ u.unsqueeze(-1))[..., 0, 0].sum(-1)
-        return cx + cu
-
-    def derivatives(self, x: Tensor, u: Tensor):
-        f, J = self._jac(x)
-        JtQ = J.mT @ self.Q
-        gx = 2 * (JtQ @ f.unsqueeze(-1)).squeeze(-1)
-        gu = 2 * (self.R @ u.unsqueeze(-1)).squeeze(-1)
-        R = self.R if self.R.dim() > 2 else self.R.unsqueeze(0)  # explicit time dim
-        return gx, gu, 2 * JtQ @ J, None, 2 * R
-
-
-# --------------------------------------------------------------------------------------------------
-# dynamics and cost derivatives
-# --------------------------------------------------------------------------------------------------
-
-
-def _step(dyn, x: Tensor, u: Tensor, t: int) -> Tensor:
-    return dyn.step(x, u, t)
-
-
-def _rollout(dyn, x0: Tensor, u: Tensor) -> Tensor:
-    xs = [x0]
-    for t in range(u.shape[-2]):
-        xs.append(_step(dyn, xs[-1], u[..., t, :], t))
-    shape = torch.broadcast_shapes(*[v.shape for v in xs])
-    return torch.stack([v.expand(shape) for v in xs], dim=-2)
-
-
-def _linearize(dyn, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-    """Time-major ``A (T, *B, n, n)``, ``B (T, *B, n, m)`` along ``x (*B, T+1, n)``, ``u (*B, T, m)``."""
-    T = u.shape[-2]
-    if isinstance(dyn, LinearDynamics):
-        # batch dims right-aligned with the trajectory's (singletons where A or B is shared)
-        nb = x.dim() - 2
-        return _tm(dyn.A, 2, T, nb), _tm(dyn.B, 2, T, nb)
-    if _is_system(dyn):
-        return dyn.jacobian(x[..., :T, :].movedim(-2, 0), u.movedim(-2, 0), 0)
-    from controllers.linearize import jacobians
-
-    # analytic Jacobians when the dynamics has them, torch.func otherwise (controllers.linearize)
-    As, Bs = [], []
-    for t in range(T):
-        _, A, B = jacobians(dyn, x[..., t, :], u[..., t, :], t)
-        As.append(A)
-        Bs.append(B)
-    return torch.stack(As), torch.stack(Bs)
-
-
-def _quad_derivatives(cost: QuadraticCost, x: Tensor, u: Tensor):
-    """Exact derivatives of a :class:`QuadraticCost` (no factor ½: ``H = 2Q``), batch-first."""
-    T = u.shape[-2]
-    dx = x if cost.x_ref is None else x - cost.x_ref
-    du = u if cost.u_ref is None else u - cost.u_ref
-    gx = 2 * (cost.Q @ dx.unsqueeze(-1)).squeeze(-1)
-    gu = 2 * (cost.R @ du.unsqueeze(-1)).squeeze(-1)
-    if cost.q is not None:
-        gx = gx + 2 * cost.q
-    if cost.r is not None:
-        gu = gu + 2 * cost.r
-    Hux = None
-    if cost.N is not None:
-        Nd = 2 * (cost.N @ du.unsqueeze(-1)).squeeze(-1)
-        gx = gx + torch.cat([Nd, torch.zeros_like(Nd[..., :1, :])], -2)
-        gu = gu + 2 * (cost.N.mT @ dx[..., :T, :].unsqueeze(-1)).squeeze(-1)
-        Hux = 2 * cost.N.mT
-    Hxx = 2 * cost.Q
-    Huu = 2 * cost.R
-    return gx, gu, Hxx, Hux, Huu
-
-
-def _autograd_cost_derivatives(cost, x: Tensor, u: Tensor):
-    """Exact gradient and per-step Hessian blocks of a time-separable cost by double backward."""
-    n, m = x.shape[-1], u.shape[-1]
-    with torch.enable_grad():
-        xg = x.detach().requires_grad_(True)
-        ug = u.detach().requires_grad_(True)
-        J = cost.evaluate(xg, ug).sum()
-        gx, gu = torch.autograd.grad(J, (xg, ug), create_graph=True)
-        Hxx, Hxu, Huu = _hessian_rows(gx, gu, xg, ug, n, m)
-    return gx.detach(), gu.detach(), Hxx, Hxu[..., :-1, :, :].mT, Huu
-
-
-def _hessian_rows(gx: Tensor, gu: Tensor, xg: Tensor, ug: Tensor, n: int, m: int):
-    """Per-time-step Hessian blocks of a sum of per-step terms from its gradient (built with a graph)."""
-    rx, rxu, ru = [], [], []
-    for i in range(n):
-        if gx.requires_grad:
-            a, b = torch.autograd.grad(gx[..., i].sum(), (xg, ug), retain_graph=True, allow_unused=True)
-        else:
-            a = b = None
-        rx.append(torch.zeros_like(xg) if a is None else a)
-        # u has T steps, x has T+1: pad the last (terminal) step with zeros
-        rxu.append(torch.zeros_like(xg[..., :1]).expand(*xg.shape[:-1], m) if b is None
-                   else torch.cat([b, torch.zeros_like(b[..., :1, :])], -2))
-    for i in range(m):
-        if gu.requires_grad:
-            (c,) = torch.autograd.grad(gu[..., i].sum(), (ug,), retain_graph=True, allow_unused=True)
-        else:
-            c = None
-        ru.append(torch.zeros_like(ug) if c is None else c)
-    return torch.stack(rx, -2).detach(), torch.stack(rxu, -2).detach(), torch.stack(ru, -2).detach()
-
-
-def _cost_derivatives(cost, x: Tensor, u: Tensor):
-    """``gx (*B,T+1,n)``, ``gu (*B,T,m)``, ``Hxx (…,T+1,n,n)``, ``Hux (…,T,m,n)`` or None, ``Huu``."""
-    if isinstance(cost, QuadraticCost):
-        return _quad_derivatives(cost, x, u)
-    if callable(getattr(cost, "derivatives", None)):
-        return cost.derivatives(x, u)
-    return _autograd_cost_derivatives(cost, x, u)
-
-
-def _tm(v: Tensor | None, k: int, T: int, nb: int) -> Tensor | None:
-    """Batch-first timed tensor with ``k`` trailing dims -> time-major ``(T, *b, ...)`` with ``nb`` batch
-    dims (singletons inserted where the tensor is shared), expanded to ``T`` steps (a view)."""
-    if v is None:
-        return None
-    d = v.dim() - k - 1
-    v = v.movedim(d, 0)
-    v = v.reshape(v.shape[0], *([1] * (nb - d)), *v.shape[1:])
-    return v.expand(T, *v.shape[1:])
 
 
 # --------------------------------------------------------------------------------------------------
@@ -604,7 +415,6 @@ def _batch_step(A, B, gx, gu, Hxx, Hux, Huu, mu, lo, hi, k_warm, bs):
     """
     T, n, m = A.shape[0], A.shape[-1], B.shape[-1]
     dtype, device = A.dtype, A.device
-    from controllers.lifted import transfer_matrices
 
     Su = transfer_matrices(A.movedim(0, -3), B.movedim(0, -3), None, T)[1].expand(*bs, (T + 1) * n, T * m)
     Suk = Su.reshape(*bs, T + 1, n, T * m)
@@ -680,7 +490,7 @@ def _forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi):
         if lo_tm is not None:
             ut = torch.clamp(ut, lo_tm[t], hi_tm[t])
         us.append(ut)
-        xt = _step(dyn, xt, ut, t)
+        xt = dyn.step(xt, ut, t)
         xs.append(xt)
     return torch.stack(xs, -2), torch.stack(us, -2)
 
@@ -746,7 +556,7 @@ def ilqr(
         u_init: ``(*B, T, m)`` or ``(T, m)`` initial controls (projected onto the limits); zeros by default.
             For receding-horizon use pass the shifted previous solution (:mod:`controllers.mpc`).
         method: :class:`ILQRMethod` (``"recursive"``, Algorithm 5, or ``"batch"``, Algorithm 4).
-        grad: :class:`GradMode` (``"implicit"``, ``"unroll"`` or ``"none"``).
+        grad: :class:`~controllers.problem.GradMode` (``"implicit"``, ``"unrolled"`` or ``"none"``).
         options: :class:`ILQROptions`.
 
     Returns:
@@ -754,7 +564,8 @@ def ilqr(
         at most ``tol_kkt`` at the returned point), ``STALLED`` (stopped moving at a point that is not
         certified), ``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``
         (no μ up to ``mu_max`` gave a positive-definite ``Q_uu`` and a certified inner box QP),
-        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``: that element's outputs are NaN) or
+        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``: that element's outputs are NaN),
+        ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper`` somewhere: outputs NaN) or
         ``DIVERGED`` (the initial rollout is not finite).  Every other element is solved as if alone.
     """
     if not isinstance(problem, ILQRProblem):
@@ -779,27 +590,32 @@ def ilqr(
     lo, hi = _bcast(lo, (*bs, T, m)), _bcast(hi, (*bs, T, m))
     x0 = problem.x0.expand(*bs, n)
     bad = ~torch.isfinite(x0).all(-1) | ~torch.isfinite(u_init).flatten(-2).all(-1)
+    crossed = None
+    if lo is not None:
+        # per element, no host sync: such an element is solved with open limits and returned as NaN
+        crossed = (lo > hi).flatten(-2).any(-1)
+        lo = torch.where(crossed[..., None, None], -math.inf, lo)
+        hi = torch.where(crossed[..., None, None], math.inf, hi)
+        bad = bad | crossed
     zero = torch.zeros((), **kw)
     x0s = torch.where(bad.unsqueeze(-1), zero, x0)
     u0 = _clip(torch.where(bad[..., None, None], zero, u_init), lo, hi)
 
-    if grad is GradMode.UNROLL:
+    if grad is GradMode.UNROLLED:
         with torch.enable_grad():
             out = _solve(problem, x0s, u0, lo, hi, bad, bs, method, opts)
     else:
         # no graph while iterating; inference mode (less overhead per kernel) when no derivative inside the
         # loop needs autograd, results cloned out of it
         d = problem.dynamics
-        analytic = isinstance(problem.cost, QuadraticCost) and (
-            isinstance(d, LinearDynamics) or _is_system(d)
-            or (isinstance(d, NonlinearDynamics) and d.jacobian is not None))
+        analytic = isinstance(problem.cost, QuadraticCost) and has_analytic_jacobian(d)
         with torch.inference_mode() if analytic else torch.no_grad():
             out = _solve(problem, x0s.detach(), u0.detach(), lo, hi, bad, bs, method, opts)
         if analytic:
             out = tuple(v.clone() for v in out)
     x, u, K, kff, free, reason, iters, hist, mu, kkt = out
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
-        x, u = _attach_implicit(problem, x0s, x, u, free, bs)
+        x, u = ilqr_implicit(problem, x0s, x, u, free, bs)
     with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
         cost = problem.cost.evaluate(x, u).expand(bs)
     nanv = torch.full((), math.nan, **kw)
@@ -807,6 +623,8 @@ def ilqr(
     x = torch.where(b1, nanv, x)
     u = torch.where(b1, nanv, u)
     cost = torch.where(bad, nanv, cost)
+    if crossed is not None:
+        reason = torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), reason)
     status = SolverStatus(converged=reason == int(Reason.CONVERGED), iterations=iters, reason=reason)
     return ILQRSolution(x=x, u=u, K=K, k=kff, cost=cost, status=status, clamped=~free, cost_history=hist,
                         mu=mu, kkt_residual=kkt)
@@ -824,7 +642,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     alphas = 0.5 ** torch.arange(opts.line_search_steps, **kw)
     eps = torch.finfo(dtype).eps
 
-    x = _rollout(dyn, x0, u)
+    x = rollout(dyn, x0, u)
     J = cost.evaluate(x, u).expand(bs)
     reason = torch.full(bs, int(Reason.MAX_ITERATIONS), dtype=torch.int64, device=device)
     diverged = ~torch.isfinite(J) & ~bad
@@ -846,10 +664,11 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     for _ in range(opts.max_iter):
         if not bool(active.any()):
             break
-        A, B = _linearize(dyn, x, u)
-        gx, gu, Hxx, Hux, Huu = _cost_derivatives(cost, x, u)
+        A, B = trajectory_jacobians(dyn, x, u)
+        gx, gu, Hxx, Hux, Huu = cost_derivatives(cost, x, u)
         gx_tm, gu_tm = gx.movedim(-2, 0), gu.movedim(-2, 0)
-        Hxx_tm, Hux_tm, Huu_tm = _tm(Hxx, 2, T + 1, nb), _tm(Hux, 2, T, nb), _tm(Huu, 2, T, nb)
+        Hxx_tm = time_major(Hxx, 2, T + 1, nb)
+        Hux_tm, Huu_tm = time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb)
         u_tm = u.movedim(-2, 0)
         # the certificate at the current point decides how an element that stops here ends
         cert = _kkt_residual(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm) <= tol_kkt
@@ -926,8 +745,8 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         k_warm = torch.where(accept.unsqueeze(-1), torch.zeros((), **kw), k)
 
     # gains, clamped set and certificate at the returned point (one more backward pass)
-    A, B = _linearize(dyn, x, u)
-    gx, gu, Hxx, Hux, Huu = _cost_derivatives(cost, x, u)
+    A, B = trajectory_jacobians(dyn, x, u)
+    gx, gu, Hxx, Hux, Huu = cost_derivatives(cost, x, u)
     u_tm = u.movedim(-2, 0)
     kkt = _kkt_residual(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm).expand(bs)
     certified = kkt <= tol_kkt
@@ -937,86 +756,9 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     reason = torch.where((reason == int(Reason.CONVERGED)) & ~certified, int(Reason.STALLED), reason)
     dlo = None if lo is None else lo_tm - u_tm
     dhi = None if hi is None else hi_tm - u_tm
-    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), _tm(Hxx, 2, T + 1, nb),
-                        _tm(Hux, 2, T, nb), _tm(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
+    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
+                        time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
     K = bw.K.movedim(0, -3)
     free = bw.free.movedim(0, -2)
     kff = u - (K @ x[..., :T, :].unsqueeze(-1)).squeeze(-1)
     return x, u, K, kff, free, reason, iters, torch.stack(hist), mu, kkt
-
-
-# --------------------------------------------------------------------------------------------------
-# implicit gradients
-# --------------------------------------------------------------------------------------------------
-
-
-def _step_all(dyn, x: Tensor, u: Tensor) -> Tensor:
-    """``f(x_t, u_t, t)`` for all ``t``: ``x (*B, T, n)``, ``u (*B, T, m)`` -> ``(*B, T, n)``."""
-    if _is_system(dyn):
-        return dyn.step(x.movedim(-2, 0), u.movedim(-2, 0), 0).movedim(0, -2)
-    return torch.stack([dyn.step(x[..., t, :], u[..., t, :], t) for t in range(u.shape[-2])], -2)
-
-
-def _lq_newton(A, B, c, Q, R, N, q, r, x0, T):
-    """The LQ (Newton) step, differentiable in ``c, q, r, x0`` through :mod:`controllers.riccati`."""
-    from controllers import riccati
-
-    x, u, *_ = riccati.lqr(A, B, c, Q, R, N, q, r, x0, T, grad=riccati.GradMode.IMPLICIT)
-    return x, u
-
-
-def _attach_implicit(problem: ILQRProblem, x0s: Tensor, x: Tensor, u: Tensor, free: Tensor, bs):
-    """Give ``x, u`` the implicit derivatives of the KKT conditions at the solution (module docstring).
-
-    ``x + (δx - sg(δx))`` where ``δx`` is the Newton step on the KKT system (≈ 0 at a stationary point):
-    the value is unchanged and the derivative is ``-K⁻¹ ∂F/∂θ``.  Clamped controls are fixed on their
-    bounds (their stationarity rows are replaced by ``δu = 0``).
-    """
-    dyn, cost = problem.dynamics, problem.cost
-    T, n, m = problem.T, problem.n, problem.m
-    x0 = problem.x0.expand(*bs, n)
-    x0 = torch.where(torch.isfinite(x0), x0, torch.zeros((), dtype=x0.dtype, device=x0.device))
-    x, u = x.detach(), u.detach()
-    A, B = _linearize(dyn, x, u)  # time-major
-    A, B = A.detach(), B.detach()
-    with torch.no_grad():
-        gx, gu, *_ = _cost_derivatives(cost, x, u)
-        lam = [gx[..., T, :]]
-        for t in range(T - 1, -1, -1):
-            lam.append(gx[..., t, :] + (A[t].mT @ lam[-1].unsqueeze(-1)).squeeze(-1))
-        lam = torch.stack(lam[::-1], -2).expand(*bs, T + 1, n)
-    with torch.enable_grad():
-        xs = x.clone().requires_grad_(True)
-        us = u.clone().requires_grad_(True)
-        cdyn = _step_all(dyn, xs[..., :T, :], us) - xs[..., 1:, :]
-        c0 = x0 - xs[..., 0, :]
-        L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * cdyn).sum() + (lam[..., 0, :] * c0).sum()
-        rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
-        if not any(v.requires_grad for v in (c0, cdyn)) and not _depends_on_params(rx, ru, xs, us):
-            return x, u
-        Hxx, Hxu, Huu = _hessian_rows(rx, ru, xs, us, n, m)
-        fm = free.to(x.dtype)
-        Bm = B.movedim(0, -3) * fm.unsqueeze(-2)
-        R = 0.5 * masked_hessian(Huu, free)
-        N = 0.5 * Hxu[..., :T, :, :] * fm.unsqueeze(-2)
-        Q = 0.25 * (Hxx + Hxx.mT)
-        R = 0.5 * (R + R.mT)
-        dx, du = _lq_newton(A.movedim(0, -3).expand(*bs, T, n, n), Bm, cdyn, Q, R, N, 0.5 * rx,
-                            0.5 * ru * fm, c0, T)
-    return x + (dx - dx.detach()), u + (du - du.detach())
-
-
-def _depends_on_params(rx: Tensor, ru: Tensor, xs: Tensor, us: Tensor) -> bool:
-    """Whether the stationarity residual has a graph to anything other than the trajectory itself."""
-    seen, stack = set(), [v.grad_fn for v in (rx, ru) if v.grad_fn is not None]
-    own = {id(xs), id(us)}
-    while stack:
-        fn = stack.pop()
-        if fn is None or id(fn) in seen:
-            continue
-        seen.add(id(fn))
-        var = getattr(fn, "variable", None)
-        if var is not None and id(var) not in own and var.requires_grad:
-            return True
-        stack.extend(nf for nf, _ in fn.next_functions)
-    return False

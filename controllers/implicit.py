@@ -8,7 +8,7 @@ optimal trajectory ``z = (τ, λ)`` of an LQ problem solves a symmetric linear s
 
 Solving ``M d = [ḡ; 0]`` is itself an LQ problem with the *same* Hessians and dynamics, linear cost
 terms ``-ḡ``, no drift and ``x_0 = 0``, so it reuses the factors of the forward Riccati pass: one extra
-backward sweep on vectors.  With this package's conventions (:mod:`controllers.problem`: stage cost
+backward sweep on vectors.  With this package's conventions (:mod:`controllers.costs`: stage cost
 ``τᵀCτ + 2gᵀτ``, multipliers ``λ_t = P_t x_t + p_t``; KKT rows ``C_t τ_t + g_t + F_tᵀ λ_{t+1} = [λ_t; 0]``,
 ``F_t τ_t + c_t = x_{t+1}``, ``x_0 = x_init``) the gradients are, with ``e = -d + ḡ_J τ`` (``ḡ_J`` the
 cotangent of the optimal cost, handled by the envelope theorem)::
@@ -28,9 +28,12 @@ from __future__ import annotations
 
 import torch
 
-from controllers import riccati as _ric
+from controllers import _lq_kernels as _k
+from controllers.boxqp import masked_hessian
+from controllers.costs import cost_derivatives, hessian_rows, lq_coefficients
+from controllers.dynamics import step_all, trajectory_jacobians
 
-__all__ = ["LQRFunction", "lqr_implicit", "adjoint_solve"]
+__all__ = ["LQRFunction", "lqr_implicit", "adjoint_solve", "ilqr_implicit"]
 
 #: iterative-refinement steps of the primal and adjoint solutions in the backward pass (:func:`_refine`)
 _REFINE_STEPS = 3
@@ -152,7 +155,7 @@ class LQRFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, A, B, c, Q, R, N, q, r, x0, T, bs, fused=False):
         n, m = A.shape[-1], B.shape[-1]
-        x, u, J, fac, F = _ric._solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, keep_huu=True, fused=fused)
+        x, u, J, fac, F = _k.solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, keep_huu=True, fused=fused)
         Bt = x.shape[0]
         K = fac.Kt[..., :n]
         k = fac.Kt[..., n]
@@ -161,7 +164,7 @@ class LQRFunction(torch.autograd.Function):
         ctx.has = [v is not None for v in (A, B, c, Q, R, N, q, r, x0)]
         Bflat = F[..., :n, :m]
         cost = ((Q, 2), (R, 2), (N, 2), (q, 1), (r, 1))
-        fl = [None if v is None else _ric._flat(v, bs, k) for v, k in cost]
+        fl = [None if v is None else _k.flat(v, bs, k) for v, k in cost]
         ctx.save_for_backward(x, u, fac.Kt, fac.Huu, fac.V, F, Bflat, *fl)
         ctx.mark_non_differentiable(K, k, fac.ok)
         ctx.Bt = Bt
@@ -176,7 +179,7 @@ class LQRFunction(torch.autograd.Function):
         gu = torch.zeros(Bt, T, m, dtype=dt, device=dev) if gu is None else gu
         gJ = torch.zeros(Bt, dtype=dt, device=dev) if gJ is None else gJ
         K = Kt[..., :n]
-        Phi = _ric.closed_loop(F, Kt, m)[..., :n, :n]
+        Phi = _k.closed_loop(F, Kt, m)[..., :n, :n]
         P = V[..., :n, :n]
         L, _ = torch.linalg.cholesky_ex(Huu)
         A = F[..., :n, m:m + n]
@@ -226,3 +229,68 @@ class LQRFunction(torch.autograd.Function):
 def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, fused: bool = False):
     """Run :class:`LQRFunction`; returns flattened ``(x, u, J, K, k, ok)``."""
     return LQRFunction.apply(A, B, c, Q, R, N, q, r, x0, T, bs, fused)
+
+
+# --------------------------------------------------------------------------------------------------
+# iLQR: the implicit gradient at a (control-limited) local optimum
+# --------------------------------------------------------------------------------------------------
+
+
+def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, free: torch.Tensor,
+                  bs: torch.Size):
+    """Give iLQR's solution ``x, u`` of ``problem`` (an :class:`~controllers.ilqr.ILQRProblem`) the implicit
+    derivatives of its KKT conditions (:mod:`controllers.ilqr` docstring).
+
+    ``x + (δx - sg(δx))`` where ``δx`` is the Newton step on the KKT system (≈ 0 at a stationary point):
+    the value is unchanged and the derivative is ``-K⁻¹ ∂F/∂θ``.  Clamped controls are fixed on their
+    bounds (their stationarity rows are replaced by ``δu = 0``).
+    """
+    dyn, cost = problem.dynamics, problem.cost
+    T, n, m = problem.T, problem.n, problem.m
+    x0 = problem.x0.expand(*bs, n)
+    x0 = torch.where(torch.isfinite(x0), x0, torch.zeros((), dtype=x0.dtype, device=x0.device))
+    x, u = x.detach(), u.detach()
+    A, B = trajectory_jacobians(dyn, x, u)  # time-major
+    A, B = A.detach(), B.detach()
+    with torch.no_grad():
+        gx, gu, *_ = cost_derivatives(cost, x, u)
+        lam = [gx[..., T, :]]
+        for t in range(T - 1, -1, -1):
+            lam.append(gx[..., t, :] + (A[t].mT @ lam[-1].unsqueeze(-1)).squeeze(-1))
+        lam = torch.stack(lam[::-1], -2).expand(*bs, T + 1, n)
+    with torch.enable_grad():
+        xs = x.clone().requires_grad_(True)
+        us = u.clone().requires_grad_(True)
+        cdyn = step_all(dyn, xs[..., :T, :], us) - xs[..., 1:, :]
+        c0 = x0 - xs[..., 0, :]
+        L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * cdyn).sum() + (lam[..., 0, :] * c0).sum()
+        rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
+        if not any(v.requires_grad for v in (c0, cdyn)) and not _depends_on_params(rx, ru, xs, us):
+            return x, u
+        Hxx, Hxu, Huu = hessian_rows(rx, ru, xs, us, n, m)
+        fm = free.to(x.dtype)
+        Bm = B.movedim(0, -3) * fm.unsqueeze(-2)
+        # the Newton step's LQ problem: coefficients of the Lagrangian's second-order model (clamped
+        # controls fixed on their bounds: their rows and columns masked out)
+        Q, R, N, q, r = lq_coefficients(rx, ru * fm, Hxx, (Hxu[..., :T, :, :] * fm.unsqueeze(-2)).mT,
+                                        masked_hessian(Huu, free))
+        A = A.movedim(0, -3).expand(*bs, T, n, n)
+        dx, du, *_ = lqr_implicit(A, Bm, cdyn, Q, R, N, q, r, c0, T, bs)
+        dx, du = dx.reshape(*bs, T + 1, n), du.reshape(*bs, T, m)
+    return x + (dx - dx.detach()), u + (du - du.detach())
+
+
+def _depends_on_params(rx: torch.Tensor, ru: torch.Tensor, xs: torch.Tensor, us: torch.Tensor) -> bool:
+    """Whether the stationarity residual has a graph to anything other than the trajectory itself."""
+    seen, stack = set(), [v.grad_fn for v in (rx, ru) if v.grad_fn is not None]
+    own = {id(xs), id(us)}
+    while stack:
+        fn = stack.pop()
+        if fn is None or id(fn) in seen:
+            continue
+        seen.add(id(fn))
+        var = getattr(fn, "variable", None)
+        if var is not None and id(var) not in own and var.requires_grad:
+            return True
+        stack.extend(nf for nf, _ in fn.next_functions)
+    return False

@@ -11,7 +11,7 @@ it doubles as the test oracle of the recursive solvers.  Variants from the seed:
   §7.2 (:func:`smoothness_precision`) or precisions coupling several time steps,
 * control primitives ``u = Ψ w`` (§7.3, Eq. 66; :func:`control_primitives` with :mod:`controllers.basis`).
 
-Cost conventions are those of :mod:`controllers.problem` (no factor 1/2, as in Eq. 59).  Stacked vectors
+Cost conventions are those of :mod:`controllers.costs` (no factor 1/2, as in Eq. 59).  Stacked vectors
 are time-major: ``x = [x_0; x_1; ...; x_T]`` ``((T+1) n)``, ``u = [u_0; ...; u_{T-1}]`` ``(T m)``.
 """
 

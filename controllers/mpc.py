@@ -5,10 +5,13 @@ applied and the rest of the plan, shifted by one step (the last control repeated
 solve.  The warm start is *explicit state*: :class:`MPCState` goes in and comes out of every call and is
 never kept on the solver or the module (DESIGN §2), so one policy can serve many independent rollouts.
 
-:class:`MPCPolicy` maps a ``(B, n)`` observation to a ``(B, m)`` action.  Its cost weights and target are
-``nn.Parameter``s (tensor parameters of the system model, e.g. a pendulum length given as an
-``nn.Parameter``, are registered too), and gradients reach them through the implicit iLQR gradients
-(:mod:`controllers.ilqr`), so the policy can be trained end to end or used as the action head of a network.
+:class:`MPCPolicy` maps a ``(*B, n)`` observation to a ``(*B, m)`` action.  Its cost is any ``nn.Module``
+that turns the observation into a :class:`~controllers.costs.Cost` (e.g.
+:class:`~controllers.costs.DiagonalQuadraticCost`, learnable diagonal weights and target; or a network
+that predicts a goal), tensor parameters of the system model (e.g. a pendulum length given as an
+``nn.Parameter``) are registered too, and gradients reach them through the implicit iLQR gradients
+(:mod:`controllers.implicit`), so the policy can be trained end to end or used as the action head of a
+network.  In a vector environment, :meth:`MPCState.reset` cold-starts the elements whose episode ended.
 """
 
 from __future__ import annotations
@@ -18,15 +21,18 @@ from dataclasses import dataclass, fields, is_dataclass
 import torch
 from torch import Tensor, nn
 
-from controllers.ilqr import GradMode, ILQRMethod, ILQROptions, ILQRProblem, ILQRSolution, ilqr
-from controllers.problem import QuadraticCost, enum_arg
+from controllers._validate import enum_arg
+from controllers.costs import Cost
+from controllers.dynamics import System
+from controllers.ilqr import ILQRMethod, ILQROptions, ILQRProblem, ILQRSolution, ilqr
+from controllers.problem import GradMode
 
 __all__ = ["MPCState", "MPCRollout", "shift", "mpc_step", "run_mpc", "MPCPolicy"]
 
 
 @dataclass(frozen=True, eq=False)
 class MPCState:
-    """Warm start carried from one MPC step to the next.
+    """Warm start carried from one MPC step to the next (immutable: every method returns a new state).
 
     Attributes:
         u: ``(*B, T, m)`` controls for the next solve (the previous plan shifted by one step), no graph.
@@ -37,6 +43,37 @@ class MPCState:
     u: Tensor
     converged: Tensor
     iterations: Tensor
+
+    @staticmethod
+    def cold(batch_shape: int | tuple[int, ...] | torch.Size, horizon: int, m: int, *,
+             dtype: torch.dtype | None = None, device: torch.device | str | None = None) -> MPCState:
+        """A cold start (zero controls, nothing converged) for a batch of shape ``batch_shape``."""
+        bs = (batch_shape,) if isinstance(batch_shape, int) else tuple(batch_shape)
+        if any(not isinstance(b, int) or b < 0 for b in bs):
+            raise ValueError(f"MPCState.cold: argument 'batch_shape' must be an int or a tuple of "
+                             f"non-negative ints, got {batch_shape!r}")
+        return MPCState(u=torch.zeros(*bs, horizon, m, dtype=dtype, device=device),
+                        converged=torch.zeros(bs, dtype=torch.bool, device=device),
+                        iterations=torch.zeros(bs, dtype=torch.int64, device=device))
+
+    @property
+    def batch_shape(self) -> torch.Size:
+        return self.converged.shape
+
+    def reset(self, done: Tensor) -> MPCState:
+        """Cold-start the elements where ``done`` (bool, the batch shape) is True — e.g. the environments
+        whose episode just ended — and keep the others' warm start.  No host synchronization."""
+        if not isinstance(done, Tensor) or done.dtype != torch.bool:
+            raise TypeError("MPCState.reset: argument 'done' must be a bool tensor of the batch shape "
+                            f"{tuple(self.batch_shape)}")
+        if done.shape != self.batch_shape:
+            raise ValueError(f"MPCState.reset: argument 'done' has shape {tuple(done.shape)}, expected the "
+                             f"batch shape {tuple(self.batch_shape)}")
+        done = done.to(self.u.device)
+        zero = torch.zeros((), dtype=self.u.dtype, device=self.u.device)
+        return MPCState(u=torch.where(done[..., None, None], zero, self.u),
+                        converged=self.converged & ~done,
+                        iterations=torch.where(done, 0, self.iterations))
 
 
 def shift(u: Tensor, fill: str = "last") -> Tensor:
@@ -80,7 +117,7 @@ class MPCRollout:
     iterations: Tensor
 
 
-def run_mpc(system, cost: QuadraticCost, x0: Tensor, horizon: int, steps: int, *,
+def run_mpc(system: System, cost: Cost, x0: Tensor, horizon: int, steps: int, *,
             u_lower=None, u_upper=None, simulator=None, warm_start: bool = True,
             options: ILQROptions | None = None) -> MPCRollout:
     """Run MPC in closed loop for ``steps`` steps (no gradients).
@@ -110,101 +147,76 @@ def run_mpc(system, cost: QuadraticCost, x0: Tensor, horizon: int, steps: int, *
                       iterations=torch.stack(its, -1))
 
 
-def _inv_softplus(v: Tensor) -> Tensor:
-    return v + torch.log(-torch.expm1(-v))
-
-
 class MPCPolicy(nn.Module):
-    """A differentiable MPC policy: observation ``(B, n)`` → action ``(B, m)``.
+    """A differentiable MPC policy: observation ``(*B, n)`` → action ``(*B, m)``.
 
-    The cost is ``Σ_t (x_t - x*)ᵀ diag(q) (x_t - x*) + uᵀ diag(r) u`` with terminal weight
-    ``terminal_factor · diag(q)``; ``q``, ``r`` (positive through a softplus) and the target ``x*`` are
-    ``nn.Parameter``s.  ``forward(obs, state)`` returns ``(action, next_state)``: the warm start is passed in
-    and returned, never stored on the module.
+    ``forward(obs, state)`` builds the cost ``cost(obs)``, solves the control-limited problem from ``obs``
+    warm-started by ``state`` and returns ``(action, next_state)``: the warm start is passed in and
+    returned, never stored on the module.
 
     Args:
-        system: a model from :mod:`controllers.systems` (or any dynamics accepted by
-            :class:`~controllers.ilqr.ILQRProblem`); tensor fields that are ``nn.Parameter``s are registered.
+        system: a :class:`~controllers.dynamics.System` (e.g. a model from :mod:`controllers.systems`);
+            its tensor fields that are ``nn.Parameter``s are registered.
         horizon: planning horizon ``T``.
-        q, r: initial diagonal weights ``(n,)``, ``(m,)``; target: initial ``x*`` ``(n,)``.
-        u_lower, u_upper: control limits (floats or ``(m,)`` tensors).
+        cost: an ``nn.Module`` with ``forward(obs (*B, n)) -> Cost`` over ``T`` steps, e.g.
+            :class:`~controllers.costs.DiagonalQuadraticCost`; its parameters are the policy's.
+        u_lower, u_upper: control limits (floats or ``(m,)`` tensors, buffers of the module).
         grad: gradient mode of the solver (implicit by default).
+        options: :class:`~controllers.ilqr.ILQROptions`.
     """
 
-    def __init__(self, system, horizon: int, q: Tensor, r: Tensor, target: Tensor, *,
-                 terminal_factor: float = 10.0, u_lower=None, u_upper=None,
+    def __init__(self, system: System, horizon: int, cost: nn.Module, *, u_lower=None, u_upper=None,
                  grad: GradMode | str = GradMode.IMPLICIT, options: ILQROptions | None = None):
         super().__init__()
-        n, m = system.n, system.m
-        q, r, target = (torch.as_tensor(v) for v in (q, r, target))
-        for name, v in (("r", r), ("target", target)):
-            if v.dtype != q.dtype:
-                raise TypeError(f"MPCPolicy: argument '{name}' has dtype {v.dtype} but 'q' has {q.dtype}; "
-                                "give q, r and target one dtype")
-        for name, v in (("u_lower", u_lower), ("u_upper", u_upper)):
-            if isinstance(v, torch.Tensor) and v.dtype != q.dtype:
-                raise TypeError(f"MPCPolicy: argument '{name}' has dtype {v.dtype} but 'q' has {q.dtype}")
-        if q.shape != (n,) or target.shape != (n,):
-            raise ValueError(f"MPCPolicy: q and target must have shape ({n},), got {tuple(q.shape)} and "
-                             f"{tuple(target.shape)}")
-        if r.shape != (m,):
-            raise ValueError(f"MPCPolicy: r must have shape ({m},), got {tuple(r.shape)}")
-        if bool((q <= 0).any()) or bool((r <= 0).any()):
-            raise ValueError("MPCPolicy: initial weights q and r must be positive")
-        if not isinstance(horizon, int) or horizon < 1:
-            raise ValueError(f"MPCPolicy: horizon must be a positive int, got {horizon!r}")
+        if not isinstance(cost, nn.Module):
+            raise TypeError(f"MPCPolicy: argument 'cost' must be an nn.Module mapping the observation to a "
+                            f"cost (e.g. controllers.costs.DiagonalQuadraticCost), got {type(cost).__name__}")
+        if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
+            raise ValueError(f"MPCPolicy: argument 'horizon' must be a positive int, got {horizon!r}")
         self.system = system
         self.horizon = horizon
-        self.terminal_factor = float(terminal_factor)
+        self.cost = cost
         self.grad = enum_arg(GradMode, grad, "grad", "MPCPolicy")
         self.options = options
-        self.q_raw = nn.Parameter(_inv_softplus(q.detach().clone()))
-        self.r_raw = nn.Parameter(_inv_softplus(r.detach().clone()))
-        self.target = nn.Parameter(target.detach().clone())
         for name, v in (("u_lower", u_lower), ("u_upper", u_upper)):
-            self.register_buffer(name, None if v is None else torch.as_tensor(v, dtype=q.dtype).reshape(-1))
+            if isinstance(v, Tensor) and not v.dtype.is_floating_point:
+                raise TypeError(f"MPCPolicy: argument '{name}' must be a float or a floating tensor")
+            self.register_buffer(name, None if v is None else torch.as_tensor(
+                v, dtype=v.dtype if isinstance(v, Tensor) else torch.get_default_dtype()).reshape(-1))
         if is_dataclass(system):
             for f in fields(system):
                 v = getattr(system, f.name)
                 if isinstance(v, nn.Parameter):
                     self.register_parameter(f"system_{f.name}", v)
 
-    @property
-    def q(self) -> Tensor:
-        return nn.functional.softplus(self.q_raw)
+    def _dtype_device(self) -> tuple[torch.dtype, torch.device]:
+        t = next(iter(self.parameters()), None)
+        if t is None:
+            t = next(iter(self.buffers()), None)
+        return (torch.get_default_dtype(), torch.device("cpu")) if t is None else (t.dtype, t.device)
 
-    @property
-    def r(self) -> Tensor:
-        return nn.functional.softplus(self.r_raw)
-
-    def cost(self) -> QuadraticCost:
-        """The current :class:`~controllers.problem.QuadraticCost` (differentiable in the parameters)."""
-        T = self.horizon
-        Q = torch.diag_embed(self.q)
-        Qs = torch.cat([Q.expand(T, *Q.shape), (self.terminal_factor * Q)[None]])
-        return QuadraticCost(Q=Qs, R=torch.diag_embed(self.r), x_ref=self.target, check=False)
-
-    def initial_state(self, batch: int) -> MPCState:
-        """A cold start (zero controls) for ``batch`` environments."""
-        p = self.q_raw
-        return MPCState(u=torch.zeros(batch, self.horizon, self.system.m, dtype=p.dtype, device=p.device),
-                        converged=torch.zeros(batch, dtype=torch.bool, device=p.device),
-                        iterations=torch.zeros(batch, dtype=torch.int64, device=p.device))
+    def initial_state(self, batch_shape: int | tuple[int, ...] | torch.Size) -> MPCState:
+        """A cold start (zero controls) for a batch of environments, in the module's dtype and device."""
+        dtype, device = self._dtype_device()
+        return MPCState.cold(batch_shape, self.horizon, self.system.m, dtype=dtype, device=device)
 
     def forward(self, obs: Tensor, state: MPCState | None = None) -> tuple[Tensor, MPCState]:
-        """``(action (B, m), next_state)`` for observations ``obs (B, n)``."""
+        """``(action (*B, m), next_state)`` for observations ``obs (*B, n)``."""
         n = self.system.n
-        if obs.dim() < 1 or obs.shape[-1] != n:
-            raise ValueError(f"MPCPolicy: obs must have shape (B, {n}), got {tuple(obs.shape)}")
-        if obs.dtype != self.q_raw.dtype:
-            raise TypeError(f"MPCPolicy: obs has dtype {obs.dtype} but the policy is {self.q_raw.dtype}; "
+        if not isinstance(obs, Tensor) or obs.dim() < 1 or obs.shape[-1] != n:
+            raise ValueError(f"MPCPolicy: obs must have shape (*B, {n}), got "
+                             f"{tuple(obs.shape) if isinstance(obs, Tensor) else type(obs).__name__}")
+        dtype, _ = self._dtype_device()
+        if obs.dtype != dtype:
+            raise TypeError(f"MPCPolicy: obs has dtype {obs.dtype} but the policy is {dtype}; "
                             "use policy.to(dtype) or cast the observation")
-        lo = None if self.u_lower is None else self.u_lower
-        hi = None if self.u_upper is None else self.u_upper
-        prob = ILQRProblem(self.system, self.cost(), obs, self.horizon, u_lower=lo, u_upper=hi)
+        cost = self.cost(obs)
+        if not callable(getattr(cost, "evaluate", None)):
+            raise TypeError(f"MPCPolicy: the cost module must return a cost with evaluate(x, u) "
+                            f"(controllers.costs.Cost), got {type(cost).__name__}")
+        prob = ILQRProblem(self.system, cost, obs, self.horizon, u_lower=self.u_lower, u_upper=self.u_upper)
         action, nxt, _ = mpc_step(prob, state, grad=self.grad, options=self.options)
         return action, nxt
 
     def extra_repr(self) -> str:
         return f"system={type(self.system).__name__}, horizon={self.horizon}, grad={self.grad.value}"
-

@@ -103,8 +103,8 @@ def edge_check() -> dict:
 
 
 def _swingup_problem(x0: torch.Tensor, T: int, length):
+    from controllers.costs import QuadraticCost
     from controllers.ilqr import ILQRProblem
-    from controllers.problem import QuadraticCost
     from controllers.systems import Pendulum
 
     dt = x0.dtype

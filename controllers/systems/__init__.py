@@ -1,8 +1,9 @@
 """System models: batched dynamics with tensor parameters, shared by MPC, simulators and environments.
 
-Every model is a frozen dataclass with ``n``/``m``, ``step(x, u, t)`` (discrete dynamics),
-``jacobian(x, u, t) -> (A, B)`` (analytic), ``derivative(x, u)`` (continuous time) and ``dynamics()``
-(a :class:`controllers.problem.NonlinearDynamics`).  Parameters broadcast against ``x.shape[:-1]``.
+Every model is a :class:`controllers.dynamics.System` (a frozen dataclass with ``n``/``m``,
+``step(x, u, t)`` (discrete dynamics), ``jacobian(x, u, t) -> (A, B)`` (analytic) and
+``time_invariant = True``), with ``derivative(x, u)`` (continuous time) and ``dynamics()`` (the same
+model as a :class:`controllers.dynamics.NonlinearDynamics`).  Parameters broadcast against ``x.shape[:-1]``.
 """
 
 from controllers.systems.cartpole import CartPole

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from controllers.dynamics import NonlinearDynamics
 from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
 
 __all__ = ["CartPole"]
@@ -41,6 +42,8 @@ class CartPole:
 
     n = 4
     m = 1
+    #: ``step``/``jacobian`` ignore ``t`` and take any leading dims (:class:`controllers.dynamics.System`)
+    time_invariant = True
 
     def _params(self, x: Tensor):
         own = "CartPole"
@@ -111,7 +114,5 @@ class CartPole:
         return kin - mp * g * length * torch.cos(th)
 
     def dynamics(self):
-        """This model as a :class:`controllers.problem.NonlinearDynamics` (analytic Jacobians)."""
-        from controllers.problem import NonlinearDynamics
-
-        return NonlinearDynamics(f=self.step, n=4, m=1, jacobian=self.jacobian)
+        """This model as a :class:`controllers.dynamics.NonlinearDynamics` (analytic Jacobians)."""
+        return NonlinearDynamics(f=self.step, n=4, m=1, jacobian=self.jacobian, time_invariant=True)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from controllers.dynamics import NonlinearDynamics
 from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
 
 __all__ = ["Pendulum"]
@@ -39,6 +40,8 @@ class Pendulum:
 
     n = 2
     m = 1
+    #: ``step``/``jacobian`` ignore ``t`` and take any leading dims (:class:`controllers.dynamics.System`)
+    time_invariant = True
 
     def _params(self, x: Tensor):
         own = "Pendulum"
@@ -86,7 +89,5 @@ class Pendulum:
         return 0.5 * mass * length**2 * x[..., 1] ** 2 + mass * g * length * (1 - torch.cos(x[..., 0]))
 
     def dynamics(self):
-        """This model as a :class:`controllers.problem.NonlinearDynamics` (analytic Jacobians)."""
-        from controllers.problem import NonlinearDynamics
-
-        return NonlinearDynamics(f=self.step, n=2, m=1, jacobian=self.jacobian)
+        """This model as a :class:`controllers.dynamics.NonlinearDynamics` (analytic Jacobians)."""
+        return NonlinearDynamics(f=self.step, n=2, m=1, jacobian=self.jacobian, time_invariant=True)

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from liecontrol.bench._common import print_table, restores_threads, time_ms, write_json
+from liecontrol.report import print_table, restores_threads, time_ms, write_json
 
 __all__ = ["add_arguments", "run", "PROBLEMS"]
 
@@ -99,8 +99,8 @@ def _system(name: str, dtype: torch.dtype, length: torch.Tensor | float | None =
 
 
 def _problem(name: str, x0: torch.Tensor, T: int, length=None, params: list[float] | None = None):
+    from controllers.costs import QuadraticCost
     from controllers.ilqr import ILQRProblem
-    from controllers.problem import QuadraticCost
 
     spec = PROBLEMS[name]
     dt = x0.dtype
@@ -144,7 +144,7 @@ def _run_anchor(py: Path, name: str, x0: np.ndarray, T: int, args) -> dict:
 
 def _score(prob, u: torch.Tensor) -> torch.Tensor:
     """Cost ``(B,)`` of open-loop controls rolled out through our model, clipped to the limits."""
-    from controllers.problem import rollout
+    from controllers.dynamics import rollout
 
     lo, hi = prob.bounds()
     u = torch.minimum(torch.maximum(u, lo), hi)
@@ -240,8 +240,8 @@ def _croc_compare(name: str, label: str, x0_np: np.ndarray, T: int, args, opts, 
     ``anchor_params`` (default ``params``) are the physical parameters handed to the anchor (tests use it
     to show that the check refuses a different model).
     """
+    from controllers.dynamics import rollout
     from controllers.ilqr import ilqr
-    from controllers.problem import rollout
 
     spec = PROBLEMS[name]
     params = list(spec["params"] if params is None else params)

@@ -20,7 +20,7 @@ import math
 
 import torch
 
-from liecontrol.bench._common import print_table, restores_threads, time_ms, write_json
+from liecontrol.report import print_table, restores_threads, time_ms, write_json
 from torchlie import se3, so3
 
 __all__ = ["add_arguments", "run", "measure"]

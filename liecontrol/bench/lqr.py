@@ -15,10 +15,11 @@ iteration and no bounds) needs numpy < 2 and runs in ``.venv-mpc`` through ``_mp
 problem travels as an ``.npz`` file).  A failing anchor is reported with its error string as result.
 Each solver is timed as the median of ``--repeats`` runs after warm-up; the in-process solvers (ours,
 pypose) are timed interleaved, round after round, so load changes on a shared machine hit all alike.
-Problem objects are built once, outside the timed region, for every solver (our per-element cost checks
-are cached on the cost object).
+Problem objects are built once, outside the timed region, for every solver.
 Records with ``problem = "lqr"`` time the default eager solver on a problem object built once (as the
-anchors' modules are; an MPC loop re-solving with the same cost works this way), ``"lqr-cold"`` the
+anchors' modules are), the forward pass with the cost prepared once (``riccati.prepare``: expansion,
+stage matrices and per-element cost checks, as an MPC loop re-solving with the same cost holds them),
+the forward+backward pass without (it needs the cost's graph), ``"lqr-cold"`` the
 same with fresh problem objects built inside every timed call (construction, per-element validity
 checks and the cost expansion included), ``"lqr-fused"`` the warm solver with ``fused=True`` (each
 Riccati step's pivot updates as one ``torch.compile``'d kernel; compiled during warm-up).
@@ -38,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from liecontrol.bench._common import print_table, restores_threads, write_json
+from liecontrol.report import print_table, restores_threads, write_json
 
 __all__ = ["add_arguments", "run", "make_problem", "run_bench"]
 
@@ -104,7 +105,9 @@ def _ours_inputs(prob: dict[str, np.ndarray], dtype: torch.dtype) -> dict[str, t
 
 
 def _ours_problem(inp: dict[str, torch.Tensor]):
-    from controllers.problem import LinearDynamics, LQProblem, QuadraticCost
+    from controllers.costs import QuadraticCost
+    from controllers.dynamics import LinearDynamics
+    from controllers.problem import LQProblem
 
     return LQProblem(LinearDynamics(inp["A"], inp["B"], inp["c"]),
                      QuadraticCost(inp["Q"], inp["R"], N=inp["N"], q=inp["q"], r=inp["r"]), inp["x0"])
@@ -133,7 +136,8 @@ def _bench_ours(prob, dtype, fused=False, cold=False):
     if cold:
         fwd = lambda: riccati.solve(_ours_problem(inp), grad="none", fused=fused)
     else:
-        fwd = lambda: riccati.solve(problem, grad="none", fused=fused)
+        prepared = riccati.prepare(problem.cost, problem.T, problem.batch_shape)
+        fwd = lambda: riccati.solve(problem, grad="none", fused=fused, prepared=prepared)
 
     # float64 reference for the accuracy column
     sol64 = riccati.solve(_ours_problem(_ours_inputs(prob, torch.float64)), grad="none")

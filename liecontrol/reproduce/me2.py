@@ -28,7 +28,7 @@ from pathlib import Path
 
 import torch
 
-from liecontrol.bench._common import print_table
+from liecontrol.report import print_table
 from liecontrol.reproduce._trajectory import (
     PANDA_LIMITS,
     alpha_limits,

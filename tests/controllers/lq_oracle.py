@@ -2,7 +2,9 @@
 
 import torch
 
-from controllers.problem import LinearDynamics, LQProblem, QuadraticCost
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics
+from controllers.problem import LQProblem
 
 D = torch.float64
 

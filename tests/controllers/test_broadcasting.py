@@ -12,7 +12,9 @@ from lq_oracle import D, dense_kkt
 from controllers import ilqr as il
 from controllers import lifted, riccati
 from controllers.boxqp import box_qp
-from controllers.problem import LinearDynamics, LQProblem, QuadraticCost
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics
+from controllers.problem import LQProblem
 
 T, n, m = 4, 3, 2
 
@@ -67,7 +69,7 @@ def test_every_solver_accepts_mixed_batch_shapes(case):
         "lifted": lambda: lifted.solve_lifted(p).u,
     }
     for meth in ("recursive", "batch"):
-        for gm in ("none", "implicit", "unroll"):
+        for gm in ("none", "implicit", "unrolled"):
             outs[f"ilqr {meth} {gm}"] = (lambda meth=meth, gm=gm: il.ilqr(
                 il.ILQRProblem(p.dynamics, p.cost, x0, T), method=meth, grad=gm).u)
     for name, fn in outs.items():

@@ -15,8 +15,9 @@ import pytest
 import torch
 from scipy.optimize import minimize
 
+from controllers.costs import QuadraticCost
 from controllers.ilqr import ILQROptions, ILQRProblem, ilqr
-from controllers.problem import QuadraticCost, Reason
+from controllers.problem import Reason
 from controllers.systems import Pendulum
 
 D = torch.float64

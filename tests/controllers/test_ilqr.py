@@ -10,8 +10,10 @@ import pytest
 import torch
 
 from controllers import riccati
-from controllers.ilqr import GradMode, ILQROptions, ILQRProblem, ILQRSolution, ilqr
-from controllers.problem import LinearDynamics, LQProblem, NonlinearDynamics, QuadraticCost, Reason
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics, NonlinearDynamics
+from controllers.ilqr import ILQROptions, ILQRProblem, ILQRSolution, ilqr
+from controllers.problem import GradMode, LQProblem, Reason
 from controllers.systems import CartPole, Pendulum
 
 D64 = torch.float64
@@ -161,7 +163,7 @@ def test_implicit_matches_unrolled_and_finite_differences():
     length = torch.tensor(1.1, dtype=D64, requires_grad=True)
     w = torch.linspace(-1, 1, 8, dtype=D64).view(1, 8, 1)
     grads = {}
-    for mode in (GradMode.IMPLICIT, GradMode.UNROLL):
+    for mode in (GradMode.IMPLICIT, GradMode.UNROLLED):
         s = ilqr(_grad_problem(x0, length, 1.0), grad=mode, options=TIGHT)
         (grads[mode],) = torch.autograd.grad((s.u * w).sum() + s.cost.sum(), length)
     h = 1e-4
@@ -171,7 +173,7 @@ def test_implicit_matches_unrolled_and_finite_differences():
         vals.append(float((s.u * w).sum() + s.cost.sum()))
     fd = (vals[0] - vals[1]) / (2 * h)
     assert abs(float(grads[GradMode.IMPLICIT]) - fd) < 1e-6 * max(1.0, abs(fd))
-    assert abs(float(grads[GradMode.UNROLL]) - float(grads[GradMode.IMPLICIT])) < 1e-6
+    assert abs(float(grads[GradMode.UNROLLED]) - float(grads[GradMode.IMPLICIT])) < 1e-6
 
 
 def test_cartpole_parameter_gradient_by_finite_differences():
@@ -267,7 +269,7 @@ def test_bad_input():
     prob = _pendulum_problem(x0)
     with pytest.raises(ValueError, match="x0"):
         ILQRProblem(prob.dynamics, prob.cost, torch.zeros(2, 3, dtype=D64), 12)
-    with pytest.raises(ValueError, match="u_lower must be <= u_upper"):
+    with pytest.raises(ValueError, match=r"u_lower \(1.0\) must be <= u_upper \(-1.0\)"):
         ILQRProblem(prob.dynamics, prob.cost, x0, 12, u_lower=1.0, u_upper=-1.0)
     with pytest.raises(TypeError, match="dynamics"):
         ILQRProblem(object(), prob.cost, x0, 12)
@@ -280,9 +282,27 @@ def test_bad_input():
     assert int(Reason.CONVERGED) == 0
 
 
+def test_crossed_tensor_limits_are_a_per_element_status():
+    """Tensor limits with u_lower > u_upper in one element: that element is INFEASIBLE_BOUNDS with NaN
+    outputs, the others are solved exactly as alone; building the problem never reads device values."""
+    x0 = torch.tensor([[0.3, 0.0], [2.8, 0.0], [-0.5, 0.1]], dtype=D64)
+    prob = _pendulum_problem(x0)
+    lo = torch.full((3, 1, 1), -2.0, dtype=D64)
+    hi = torch.full((3, 1, 1), 2.0, dtype=D64)
+    lo[1] = 3.0  # crossed for element 1 only
+    crossed = ILQRProblem(prob.dynamics, prob.cost, x0, 12, u_lower=lo, u_upper=hi)
+    sol = ilqr(crossed, grad="none")
+    assert sol.status.reason_names()[1] == "INFEASIBLE_BOUNDS"
+    assert bool(torch.isnan(sol.u[1]).all()) and bool(torch.isnan(sol.cost[1]))
+    for i in (0, 2):
+        alone = ilqr(ILQRProblem(prob.dynamics, prob.cost, x0[i], 12, u_lower=-2.0, u_upper=2.0), grad="none")
+        torch.testing.assert_close(sol.u[i], alone.u, atol=1e-10, rtol=0)
+        assert sol.status.reason_names()[i] == alone.status.reason_names()[0]
+
+
 def test_residual_cost_reaching_task_eq_102_108():
     # planar 2-link arm with velocity commands (seed §9.1): residual f(x) = f_ee(x) - μ at two via points
-    from controllers.ilqr import ResidualCost
+    from controllers.costs import ResidualCost
 
     T, dt = 16, 0.1
     lengths = torch.tensor([1.0, 0.8], dtype=D64)

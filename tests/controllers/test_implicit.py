@@ -5,7 +5,9 @@ import torch
 from lq_oracle import D, random_problem
 
 from controllers import lifted, riccati
-from controllers.problem import LinearDynamics, LQProblem, QuadraticCost
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics
+from controllers.problem import LQProblem
 
 NAMES = ("A", "B", "c", "Q", "R", "N", "x_ref", "u_ref", "q", "r", "x0")
 

@@ -13,7 +13,9 @@ from mp_oracle import fd_gradient
 
 from controllers import ilqr as il
 from controllers import riccati
-from controllers.problem import LinearDynamics, LQProblem, QuadraticCost
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics
+from controllers.problem import LQProblem
 
 D = torch.float64
 T, n, m = 6, 3, 2

@@ -6,10 +6,10 @@ import torch
 
 from controllers import lifted, riccati
 from controllers.boxqp import box_qp
+from controllers.costs import DiagonalQuadraticCost, QuadraticCost
+from controllers.dynamics import jacobians
 from controllers.ilqr import ILQRProblem, ilqr
-from controllers.linearize import jacobians
 from controllers.mpc import MPCPolicy
-from controllers.problem import QuadraticCost
 from controllers.systems import Pendulum
 from tests.controllers.lq_oracle import random_problem
 
@@ -17,7 +17,8 @@ D64 = torch.float64
 
 
 def test_lq_solvers_run_under_inference_mode():
-    """Deployment runs controllers under torch.inference_mode(); the memoized checks must cope."""
+    """Deployment runs controllers under torch.inference_mode(): solving, checking and preparing a cost
+    work on inference tensors."""
     g = torch.Generator().manual_seed(0)
     p = random_problem(g)
     ref = riccati.solve(p, grad="none")
@@ -25,7 +26,7 @@ def test_lq_solvers_run_under_inference_mode():
         pi = random_problem(torch.Generator().manual_seed(0))
         a = riccati.solve(pi, grad="none")
         b = lifted.solve_lifted(pi)
-        again = riccati.solve(pi, grad="none")  # the memo keyed on an inference tensor is reused
+        again = riccati.solve(pi, grad="none", prepared=riccati.prepare(pi.cost, pi.T, pi.batch_shape))
     assert (a.u - ref.u).abs().max() < 1e-12
     assert (b.u - ref.u).abs().max() < 1e-9
     assert torch.equal(again.u, a.u)
@@ -45,9 +46,11 @@ def test_box_qp_refuses_to_cast_bounds_or_warm_start():
 def test_mpc_policy_refuses_mixed_dtypes():
     q, r, target = torch.tensor([1.0, 0.1], dtype=D64), torch.tensor([0.01]), torch.zeros(2, dtype=D64)
     with pytest.raises(TypeError, match="'r'"):
-        MPCPolicy(Pendulum(), 5, q, r, target)
+        DiagonalQuadraticCost(q, r, target, 5)
+    pol = MPCPolicy(Pendulum(), 5, DiagonalQuadraticCost(q, r.double(), target, 5),
+                    u_lower=torch.tensor([-1.0]), u_upper=1.0)
     with pytest.raises(TypeError, match="'u_lower'"):
-        MPCPolicy(Pendulum(), 5, q, r.double(), target, u_lower=torch.tensor([-1.0]), u_upper=1.0)
+        pol(torch.zeros(1, 2, dtype=D64))
 
 
 def test_bad_mode_strings_name_the_argument():
@@ -61,6 +64,7 @@ def test_bad_mode_strings_name_the_argument():
     with pytest.raises(ValueError, match="argument 'method'"):
         ilqr(prob, method="newton")
     with pytest.raises(ValueError, match="argument 'grad'"):
-        MPCPolicy(sys, 5, torch.ones(2), torch.ones(1), torch.zeros(2), grad="magic")
+        MPCPolicy(sys, 5, DiagonalQuadraticCost(torch.ones(2), torch.ones(1), torch.zeros(2), 5),
+                  grad="magic")
     with pytest.raises(ValueError, match="argument 'method'"):
         jacobians(lambda x, u, t: x + u, torch.zeros(2), torch.zeros(2), method="guess")

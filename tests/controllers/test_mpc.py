@@ -8,9 +8,9 @@ import pytest
 import torch
 from torch import nn
 
+from controllers.costs import DiagonalQuadraticCost, QuadraticCost
 from controllers.ilqr import ILQROptions
 from controllers.mpc import MPCPolicy, MPCState, run_mpc, shift
-from controllers.problem import QuadraticCost
 from controllers.systems import Pendulum
 
 D64 = torch.float64
@@ -18,10 +18,15 @@ TIGHT = ILQROptions(max_iter=100, tol=1e-12, tol_cost=0.0)
 
 
 
+def _cost(T, dtype=D64, target=math.pi):
+    return DiagonalQuadraticCost(torch.tensor([1.0, 0.1], dtype=dtype), torch.tensor([0.05], dtype=dtype),
+                                 torch.tensor([target, 0.0], dtype=dtype), T)
+
+
 def _policy(T=10, umax=5.0, dtype=D64, system=None, options=TIGHT):
-    return MPCPolicy(system or Pendulum(dt=0.05, damping=0.1), T, torch.tensor([1.0, 0.1], dtype=dtype),
-                     torch.tensor([0.05], dtype=dtype), torch.tensor([math.pi, 0.0], dtype=dtype),
-                     u_lower=-umax, u_upper=umax, options=options)
+    return MPCPolicy(system or Pendulum(dt=0.05, damping=0.1), T, _cost(T, dtype),
+                     u_lower=torch.tensor(-umax, dtype=dtype), u_upper=torch.tensor(umax, dtype=dtype),
+                     options=options)
 
 
 def test_shift():
@@ -106,8 +111,7 @@ def test_as_action_head_of_a_network_trains():
     # MPC parameters are trained together to imitate a teacher MPC with another target
     torch.manual_seed(0)
     opts = ILQROptions(max_iter=50)
-    teacher = MPCPolicy(Pendulum(dt=0.05, damping=0.1), 8, torch.tensor([1.0, 0.1], dtype=D64),
-                        torch.tensor([0.05], dtype=D64), torch.tensor([2.5, 0.0], dtype=D64), options=opts)
+    teacher = MPCPolicy(Pendulum(dt=0.05, damping=0.1), 8, _cost(8, target=2.5), options=opts)
     student = _policy(T=8, umax=50.0, options=opts)
     enc = nn.Linear(3, 2).double()
     model = nn.ModuleDict({"enc": enc, "mpc": student})
@@ -130,7 +134,7 @@ def test_as_action_head_of_a_network_trains():
         opt.zero_grad()
         loss = loss_fn()
         loss.backward()
-        assert enc.weight.grad is not None and student.target.grad is not None
+        assert enc.weight.grad is not None and student.cost.target.grad is not None
         opt.step()
     assert float(loss_fn().detach()) < 0.5 * first
 
@@ -140,12 +144,91 @@ def test_dtype_device_and_bad_input():
     a, _ = pol(torch.tensor([[math.pi - 0.3, 0.0]]))
     assert a.dtype == torch.float32
     pol64 = pol.to(D64)
-    assert pol64.q_raw.dtype == D64 and pol64.u_lower.dtype == D64
+    assert pol64.cost.q_raw.dtype == D64 and pol64.u_lower.dtype == D64
     with pytest.raises(TypeError, match="dtype"):
         pol64(torch.zeros(1, 2))
-    with pytest.raises(ValueError, match=r"obs must have shape \(B, 2\)"):
+    with pytest.raises(ValueError, match=r"obs must have shape \(\*B, 2\)"):
         pol64(torch.zeros(1, 3, dtype=D64))
     with pytest.raises(ValueError, match="positive"):
-        MPCPolicy(Pendulum(), 5, torch.tensor([1.0, -1.0]), torch.tensor([1.0]), torch.zeros(2))
+        DiagonalQuadraticCost(torch.tensor([1.0, -1.0]), torch.tensor([1.0]), torch.zeros(2), 5)
+    with pytest.raises(TypeError, match="argument 'cost' must be an nn.Module"):
+        MPCPolicy(Pendulum(), 5, QuadraticCost(torch.eye(2), torch.eye(1)))
     st = pol64.initial_state(4)
     assert st.u.shape == (4, 10, 1)
+
+
+class GoalCost(nn.Module):
+    """A cost module that reads its target from the observation: obs = [θ, ω, θ_goal] -> plan on [θ, ω]."""
+
+    def __init__(self, T):
+        super().__init__()
+        self.T = T
+        self.log_q = nn.Parameter(torch.zeros(2, dtype=D64))
+
+    def forward(self, obs):
+        w = torch.cat([self.log_q.exp() * torch.tensor([1.0, 0.1], dtype=D64), torch.zeros(1, dtype=D64)])
+        goal = torch.stack([obs[..., 2], torch.zeros_like(obs[..., 2]), obs[..., 2]], -1)  # (*B, 3)
+        return QuadraticCost(Q=torch.diag_embed(w).expand(self.T + 1, 3, 3),
+                             R=torch.tensor([[0.05]], dtype=D64), x_ref=goal.unsqueeze(-2), check=False)
+
+
+class GoalPendulum(Pendulum):
+    """The pendulum with the goal carried along in the state (constant), so the observation is the state."""
+
+    n = 3
+
+    def step(self, x, u, t=0):
+        return torch.cat([super().step(x[..., :2], u, t), x[..., 2:]], -1)
+
+    def jacobian(self, x, u, t=0):
+        A, B = super().jacobian(x[..., :2], u, t)
+        A3 = torch.zeros(*A.shape[:-2], 3, 3, dtype=A.dtype)
+        A3[..., :2, :2] = A
+        A3[..., 2, 2] = 1.0
+        return A3, torch.cat([B, torch.zeros(*B.shape[:-2], 1, 1, dtype=B.dtype)], -2)
+
+
+def test_any_cost_module_goal_conditioned_matches_a_fixed_cost_per_element():
+    """A cost module whose target comes from the observation: each element equals the policy with that
+    element's goal as a fixed cost, and the module's parameters get gradients."""
+    T = 8
+    sys3 = GoalPendulum(dt=0.05, damping=0.1)
+    pol = MPCPolicy(sys3, T, GoalCost(T), u_lower=-5.0 * torch.ones(1, dtype=D64),
+                    u_upper=5.0 * torch.ones(1, dtype=D64), options=TIGHT)
+    obs = torch.tensor([[2.9, 0.0, math.pi], [0.1, 0.2, 0.5]], dtype=D64)
+    a, _ = pol(obs)
+    for i in range(2):
+        fixed = MPCPolicy(Pendulum(dt=0.05, damping=0.1), T, _cost(T, target=float(obs[i, 2])),
+                          u_lower=-5.0 * torch.ones(1, dtype=D64), u_upper=5.0 * torch.ones(1, dtype=D64),
+                          options=TIGHT)
+        with torch.no_grad():
+            fixed.cost.q_raw.copy_(torch.log(torch.expm1(torch.tensor([1.0, 0.1], dtype=D64))))
+            fixed.cost.terminal_factor = 1.0
+        ai, _ = fixed(obs[i:i + 1, :2])
+        torch.testing.assert_close(a[i:i + 1], ai, atol=1e-8, rtol=0)
+    a.sum().backward()
+    assert pol.cost.log_q.grad is not None and bool(torch.isfinite(pol.cost.log_q.grad).all())
+
+
+def test_state_reset_of_selected_elements_and_batch_shapes():
+    """A vector env resets the elements whose episode ended: their warm start is cold again, the others'
+    is kept; the initial state takes a batch shape; a (2, 3) batch of observations equals the flat one."""
+    pol = _policy(T=6)
+    st = pol.initial_state((2, 3))
+    assert st.u.shape == (2, 3, 6, 1) and st.batch_shape == (2, 3) and st.u.dtype == D64
+    assert pol.initial_state(4).u.shape == (4, 6, 1)
+    obs = math.pi + 0.2 * torch.randn(2, 3, 2, dtype=D64, generator=torch.Generator().manual_seed(0))
+    a, s1 = pol(obs, st)
+    af, _ = pol(obs.reshape(6, 2))
+    torch.testing.assert_close(a.reshape(6, 1), af, atol=1e-10, rtol=0)
+    done = torch.tensor([[True, False, False], [False, False, True]])
+    s2 = s1.reset(done)
+    assert bool((s2.u[done] == 0).all()) and torch.equal(s2.u[~done], s1.u[~done])
+    assert not bool(s2.converged[done].any()) and torch.equal(s2.converged[~done], s1.converged[~done])
+    assert bool((s2.iterations[done] == 0).all())
+    with pytest.raises(ValueError, match="argument 'done'"):
+        s1.reset(torch.zeros(3, dtype=torch.bool))
+    with pytest.raises(TypeError, match="argument 'done'"):
+        s1.reset(torch.zeros(2, 3))
+    with pytest.raises(ValueError, match="argument 'batch_shape'"):
+        MPCState.cold((2, -1), 6, 1)

@@ -10,7 +10,9 @@ from hypothesis import strategies as st
 from lq_oracle import D, dense_kkt, random_problem, spd
 
 from controllers import lifted, riccati
-from controllers.problem import LinearDynamics, LQProblem, QuadraticCost, Reason, rollout
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics, rollout
+from controllers.problem import LQProblem, Reason
 
 FIELDS = ("Q", "R", "x_ref", "u_ref", "N", "q", "r")
 
@@ -238,33 +240,71 @@ def test_fused_kernel_matches_eager():
         riccati.solve(p, grad="unrolled", fused=True)
 
 
-def test_cost_expansion_cache_is_per_cost_and_batch_shape():
-    """grad='none' caches the cost's stage matrices on the cost object: reusing the cost with a new x0
-    (an MPC step) or a different batch shape still gives the right answer."""
+def test_prepared_cost_is_reused_across_x0_and_dynamics():
+    """A prepared cost (MPC: one cost, new x0 or dynamics every step) gives the same answer as a fresh
+    solve and as the lifted oracle, and its input status matches the problem's."""
     g = torch.Generator().manual_seed(9)
     p = random_problem(g, b=(3,), T=5)
-    first = riccati.solve(p, grad="none")
-    assert any(k[0] == "stage" for k in p.cost._cache)
+    prep = riccati.prepare(p.cost, p.T, p.batch_shape)
+    first = riccati.solve(p, grad="none", prepared=prep)
+    torch.testing.assert_close(first.u, riccati.solve(p, grad="none").u, atol=1e-12, rtol=0)
     x0 = torch.randn(3, p.n, dtype=D, generator=g)
     p2 = dataclasses.replace(p, x0=x0)
-    torch.testing.assert_close(riccati.solve(p2, grad="none").u, lifted.solve_lifted(p2).u, atol=1e-9, rtol=0)
-    torch.testing.assert_close(riccati.solve(p, grad="none").u, first.u)
+    torch.testing.assert_close(riccati.solve(p2, grad="none", prepared=prep).u, lifted.solve_lifted(p2).u,
+                               atol=1e-9, rtol=0)
+    d2 = dataclasses.replace(p.dynamics, A=1.01 * p.dynamics.A)
+    p3 = dataclasses.replace(p, dynamics=d2)
+    torch.testing.assert_close(riccati.solve(p3, grad="none", prepared=prep).u, lifted.solve_lifted(p3).u,
+                               atol=1e-9, rtol=0)
     shared = random_problem(g, b=(), T=5)
-    p3 = dataclasses.replace(shared, x0=torch.randn(4, shared.n, dtype=D, generator=g))
-    riccati.solve(shared, grad="none")
-    torch.testing.assert_close(riccati.solve(p3, grad="none").u, lifted.solve_lifted(p3).u, atol=1e-9, rtol=0)
+    p4 = dataclasses.replace(shared, x0=torch.randn(4, shared.n, dtype=D, generator=g))
+    prep4 = riccati.prepare(shared.cost, 5, p4.batch_shape)
+    torch.testing.assert_close(riccati.solve(p4, grad="none", prepared=prep4).u, lifted.solve_lifted(p4).u,
+                               atol=1e-9, rtol=0)
+    assert torch.equal(prep.status, torch.zeros(3, dtype=torch.int64))
 
 
-def test_cache_follows_in_place_updates_of_the_cost():
-    """A cost whose tensors change in place (a parameter after an optimizer step) is re-expanded."""
+def test_writes_that_bypass_the_version_counter_are_never_stale():
+    """Writes through ``.data`` or a numpy view do not bump ``tensor._version``: a memo keyed on it would
+    return the old answer without a sign.  Nothing is memoized any more: a plain solve sees the write, and
+    a prepared cost is an explicit snapshot that is re-prepared by the caller."""
     g = torch.Generator().manual_seed(10)
     p = random_problem(g, b=(2,), T=4)
     riccati.solve(p, grad="none")
-    with torch.no_grad():
-        p.cost.x_ref.add_(1.0)
-        p.cost.R.mul_(3.0)
+    v0 = p.cost.R._version
+    p.cost.R.data.mul_(3.0)
+    p.cost.x_ref.numpy()[...] += 1.0  # through numpy: no version bump either
+    assert p.cost.R._version == v0
     torch.testing.assert_close(riccati.solve(p, grad="none").u, lifted.solve_lifted(p).u, atol=1e-9, rtol=0)
-    assert sum(k[0] == "stage" for k in p.cost._cache) == 1
+    prep = riccati.prepare(p.cost, 4, p.batch_shape)
+    torch.testing.assert_close(riccati.solve(p, grad="none", prepared=prep).u, lifted.solve_lifted(p).u,
+                               atol=1e-9, rtol=0)
+
+
+def test_prepared_cost_contract():
+    """A prepared cost is checked against the problem it is used with; errors name the argument."""
+    g = torch.Generator().manual_seed(11)
+    p = random_problem(g, b=(2,), T=4)
+    prep = riccati.prepare(p.cost, 4, (2,))
+    with pytest.raises(ValueError, match="argument 'prepared' needs grad='none'"):
+        riccati.solve(p, prepared=prep)
+    with pytest.raises(ValueError, match="argument 'prepared' was made for another problem"):
+        riccati.solve(p, grad="none", prepared=riccati.prepare(p.cost, 4, (3, 2)))
+    other = random_problem(torch.Generator().manual_seed(12), b=(2,), T=4)
+    with pytest.raises(ValueError, match="another problem"):
+        riccati.solve(p, grad="none", prepared=riccati.prepare(other.cost, 4, (2,)))
+    with pytest.raises(ValueError, match="argument 'T'"):
+        riccati.prepare(p.cost, 5, (2,))
+    with pytest.raises(TypeError, match="argument 'cost'"):
+        riccati.prepare(p.dynamics, 4)
+    with pytest.raises(TypeError, match="argument 'prepared'"):
+        riccati.solve(p, grad="none", prepared=(prep.C, prep.VT))
+    # the cost's part of the input status travels with it: a bad element stays flagged, the other solved
+    bad = dataclasses.replace(p.cost, R=p.cost.R.expand(2, *p.cost.R.shape[-3:]).clone())
+    bad.R[1, 0, 0, 0] = -1.0
+    pb = dataclasses.replace(p, cost=bad)
+    sol = riccati.solve(pb, grad="none", prepared=riccati.prepare(bad, 4, pb.batch_shape))
+    assert sol.status.reason_names() == ["CONVERGED", "NOT_POSITIVE_DEFINITE"]
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])

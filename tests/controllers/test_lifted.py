@@ -7,7 +7,9 @@ import torch
 from lq_oracle import D, dense_kkt, random_problem, spd
 
 from controllers import basis, lifted
-from controllers.problem import LinearDynamics, LQProblem, QuadraticCost, rollout
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics, rollout
+from controllers.problem import LQProblem
 
 
 @pytest.mark.parametrize("features", [dict(), dict(drift=False, cross=False, refs=False, linear=False),

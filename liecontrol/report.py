@@ -1,4 +1,5 @@
-"""Timing, table and JSON helpers shared by every ``liecontrol bench`` subcommand.
+"""Report helpers of the application layer: timing, tables and JSON records, shared by the ``bench``,
+``reproduce`` (and later ``compare``/``learn``) subcommands of the ``liecontrol`` command.
 
 Absolute times drift on a shared machine; what a benchmark reports is the ratio anchor/ours measured
 in the same run, with each side timed as the median of several runs after warm-up.

@@ -1,0 +1,311 @@
+"""The LQ kernels (private): assembly of the augmented matrices, the Riccati backward sweep, the
+closed-loop forward sweep, and the two together (:func:`solve_core`).
+
+Shared by :mod:`controllers.riccati` (the public LQR/LQT solver) and :mod:`controllers.implicit` (the
+forward pass of :class:`~controllers.implicit.LQRFunction` and the closed-loop matrices its backward
+pass re-uses); neither imports the other's internals.  Inputs are canonical tensors in the cost
+convention of :mod:`controllers.costs` (``xᵀQx + uᵀRu + 2xᵀNu + 2qᵀx + 2rᵀu``) with explicit time dims;
+no validation happens here.
+
+The recursion (seed 004 §7.4-7.6). The backward pass works on the *homogeneous* (augmented) state ``x̃ =
+[x; 1]`` of seed Eq. 76-78: affine dynamics ``c_t`` and linear cost terms (tracking references, Eq. 77)
+ride along in the extra coordinate, so one Riccati recursion on ``(n+1) × (n+1)`` matrices handles LQR,
+LQT and affine dynamics at once. With ``z_t = [u_t; x_t; 1]``, ``F̃_t = [[B_t, A_t, c_t], [0, 0, 1]]``
+and the stage matrix ``C̃_t = [[R, Nᵀ, r], [N, Q, q], [rᵀ, qᵀ, 0]]`` (cost ``z_tᵀ C̃_t z_t``, the
+convention of :mod:`controllers.costs`) each step is::
+
+    H    = C̃_t + F̃_tᵀ Ṽ_{t+1} F̃_t                       (Eq. 73 with the augmented state)
+    K̃_t  = -H_uu⁻¹ H_ux̃ = [K_t, k_t]                     (Eq. 74 / 78, here u_t = K_t x_t + k_t)
+    Ṽ_t  = H_x̃x̃ + H_x̃u K̃_t                                (Eq. 75, the Schur complement of H_uu)
+
+and ``Ṽ_t = [[P_t, p_t], [p_tᵀ, s_t]]`` is the value function ``x̃ᵀ Ṽ_t x̃``; the optimal cost is
+``x̃_0ᵀ Ṽ_0 x̃_0``.  No inverse is formed: ``H_uu⁻¹ H_ux̃`` and the Schur complement come together from
+``m`` Gauss-Jordan pivots on ``H`` applied as batched elementwise updates (cheaper than per-matrix
+LAPACK calls for small ``m``; positive pivots certify ``H_uu ≻ 0`` per element), and the unrolled path
+uses a batched Cholesky factorization.  The forward pass runs the closed loop
+``u_t = K̃_t x̃_t``, ``x̃_{t+1} = F̃_t [u_t; x̃_t]`` in place.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import torch
+
+__all__ = ["flat", "assemble", "assemble_dynamics", "assemble_cost", "RiccatiFactors", "backward_pass",
+           "backward_pass_graph", "closed_loop", "closed_loop_rollout", "closed_loop_rollout_graph",
+           "solve_core"]
+
+
+def flat(x: torch.Tensor | None, bs: torch.Size, k: int) -> torch.Tensor | None:
+    """Timed tensor ``(*b, Tx, *trail)`` (``k`` trailing dims) -> ``(Bt or 1, Tx, *trail)``."""
+    if x is None:
+        return None
+    d = x.dim() - k - 1
+    b = x.shape[:d]
+    if b.numel() == 1:
+        return x.reshape(1, *x.shape[d:])
+    return x.expand(*bs, *x.shape[d:]).reshape(-1, *x.shape[d:])
+
+
+def _tsel(x: torch.Tensor, lo: int, hi: int) -> torch.Tensor:
+    """Time slice ``[lo:hi]`` of ``(b, Tx, ...)`` (a time dim of 1 broadcasts)."""
+    return x if x.shape[1] == 1 else x[:, lo:hi]
+
+
+def _expand_bt(x: torch.Tensor, b: int, T: int) -> torch.Tensor:
+    return x.expand(b, T, *x.shape[2:])
+
+
+def assemble(A, B, c, Q, R, N, q, r, T: int, bs: torch.Size):
+    """Augmented dynamics ``F̃ (bF, TF, n+1, m+n+1)``, stage costs ``C̃ (bC, TC, k, k)`` and the terminal
+    value ``Ṽ_T (bV, n+1, n+1)`` from canonical tensors (problem-module shapes, explicit time dims).
+
+    Leading dims are 1 when a quantity is shared by the batch, time dims are 1 when time-invariant.
+    Q and R must be symmetric (:class:`~controllers.costs.QuadraticCost` checks it); they are used
+    as given, and the implicit gradients are the symmetric ones.
+    """
+    return (assemble_dynamics(A, B, c, bs),) + assemble_cost(Q, R, N, q, r, T, bs)
+
+
+def assemble_dynamics(A, B, c, bs: torch.Size) -> torch.Tensor:
+    """The dynamics part of :func:`assemble`: ``F̃ = [[B, A, c], [0, 0, 1]]``."""
+    n, m = A.shape[-1], B.shape[-1]
+    A, B, c = flat(A, bs, 2), flat(B, bs, 2), flat(c, bs, 1)
+    bF = max(A.shape[0], B.shape[0], 1 if c is None else c.shape[0])
+    TF = max(A.shape[1], B.shape[1], 1 if c is None else c.shape[1])
+    dt, dev = A.dtype, A.device
+    top = [_expand_bt(B, bF, TF), _expand_bt(A, bF, TF)]
+    top.append(torch.zeros(bF, TF, n, 1, dtype=dt, device=dev) if c is None
+               else _expand_bt(c, bF, TF).unsqueeze(-1))
+    bottom = torch.zeros(bF, TF, 1, m + n + 1, dtype=dt, device=dev)
+    bottom[..., 0, -1] = 1.0
+    F = torch.cat([torch.cat(top, -1), bottom], -2)
+    return F
+
+
+def assemble_cost(Q, R, N, q, r, T: int, bs: torch.Size) -> tuple[torch.Tensor, torch.Tensor]:
+    """The cost part of :func:`assemble`: ``(C̃, Ṽ_T)``."""
+    n, m = Q.shape[-1], R.shape[-1]
+    dt, dev = Q.dtype, Q.device
+    Q, R, N, q, r = flat(Q, bs, 2), flat(R, bs, 2), flat(N, bs, 2), flat(q, bs, 1), flat(r, bs, 1)
+    Qs = _tsel(Q, 0, T)
+    qs = None if q is None else _tsel(q, 0, T)
+    parts = [Qs, R] + [v for v in (N, qs, r) if v is not None]
+    bC = max(v.shape[0] for v in parts)
+    TC = max(v.shape[1] for v in parts)
+    z = lambda *sh: torch.zeros(bC, TC, *sh, dtype=dt, device=dev)
+    Rr, Qq = _expand_bt(R, bC, TC), _expand_bt(Qs, bC, TC)
+    Nn = z(n, m) if N is None else _expand_bt(N, bC, TC)
+    qq = z(n) if qs is None else _expand_bt(qs, bC, TC)
+    rr = z(m) if r is None else _expand_bt(r, bC, TC)
+    C = torch.cat([
+        torch.cat([Rr, Nn.mT, rr.unsqueeze(-1)], -1),
+        torch.cat([Nn, Qq, qq.unsqueeze(-1)], -1),
+        torch.cat([rr.unsqueeze(-2), qq.unsqueeze(-2), z(1, 1)], -1),
+    ], -2)
+
+    QT = Q[:, -1]
+    qT = None if q is None else q[:, -1]
+    bV = max(QT.shape[0], 1 if qT is None else qT.shape[0])
+    VT = torch.zeros(bV, n + 1, n + 1, dtype=dt, device=dev)
+    VT[:, :n, :n] = QT
+    if qT is not None:
+        VT[:, :n, n] = qT
+        VT[:, n, :n] = qT
+    return C, VT
+
+
+# --------------------------------------------------------------------------------------------------
+# backward and forward passes
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class RiccatiFactors:
+    """What the backward pass leaves behind (all ``(Bt, T, ...)``): gains ``Kt = [K, k] (m, n+1)``,
+    ``Huu (m, m)``, value matrices ``V (Bt, T+1, n+1, n+1)`` and ``ok (Bt, T)`` (False where ``H_uu``
+    is not positive definite).  Without ``keep_huu`` (no gradient wanted) ``Huu`` is None and ``V``
+    holds only ``[Ṽ_0, Ṽ_T]``."""
+
+    Kt: torch.Tensor
+    Huu: torch.Tensor | None
+    V: torch.Tensor
+    ok: torch.Tensor
+
+
+def _eliminate(H: torch.Tensor, E: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``m`` Gauss-Jordan pivots on ``H (Bt, k, k)``: returns ``(H_uu⁻¹ H_ux̃, Schur complement Ṽ,
+    reciprocal pivots (Bt, m))`` (out of place, so that ``torch.compile`` can fuse it)."""
+    invs = []
+    for i in range(m):
+        inv = torch.reciprocal(H[:, i:i + 1, i:i + 1])
+        invs.append(inv)
+        H = H - (H[:, :, i:i + 1] - E[i]) * (H[:, i:i + 1, :] * inv)
+    return H[:, :m, m:], H[:, m:, m:], torch.cat(invs, -1).reshape(H.shape[0], m)
+
+
+@functools.lru_cache(maxsize=1)
+def _fused_eliminate():
+    """``torch.compile``'d :func:`_eliminate` (built once; compiled per shape/dtype on first use)."""
+    return torch.compile(_eliminate, dynamic=False, fullgraph=True)
+
+
+def backward_pass(F: torch.Tensor, C: torch.Tensor, VT: torch.Tensor, T: int, Bt: int, m: int,
+                  keep_huu: bool = True, fused: bool = False) -> RiccatiFactors:
+    """Riccati recursion on the augmented state (module docstring); batch ``Bt``, horizon ``T``.
+
+    No autograd graph (use :func:`backward_pass_graph` for that).  ``H_uu⁻¹ H_ux̃`` and the Schur complement
+    ``Ṽ_t`` come from ``m`` Gauss-Jordan pivots on ``H`` done as batched elementwise updates: for tiny
+    ``m`` this is several times cheaper than per-matrix LAPACK calls, and the pivots of a symmetric
+    positive-definite ``H_uu`` are positive, so no pivoting is needed; a non-positive pivot marks the
+    element as failed (``ok``).  With ``fused=True`` the ``4 m`` elementwise pivot updates of a step run
+    as one ``torch.compile``'d kernel (compiled on first use for each shape and dtype).
+    """
+    n1 = VT.shape[-1]
+    k = C.shape[-1]
+    dt, dev = VT.dtype, VT.device
+    shared_F = F.shape[0] == 1
+    tvF, tvC = F.shape[1] > 1, C.shape[1] > 1
+    E = torch.eye(k, dtype=dt, device=dev)[:m].unsqueeze(-1)  # unit columns e_i (k, 1)
+    V = VT.expand(Bt, n1, n1).contiguous() if fused else VT.expand(Bt, n1, n1)
+    F0 = F[0, 0] if shared_F else F[:, 0]
+    if C.shape[0] != Bt:
+        C = C.expand(Bt, *C.shape[1:])
+    C0 = C[:, 0]
+    elim = _fused_eliminate() if fused else None
+    # H is a fresh tensor at every step: the value matrices are kept as views of it (gradient mode only)
+    Vs, Huus = [V], []
+    pivbuf = torch.empty(Bt, T, m, 1, 1, dtype=dt, device=dev)
+    Kt = torch.empty(Bt, T, m, n1, dtype=dt, device=dev)
+    for t in range(T - 1, -1, -1):
+        Ft = (F[0, t] if shared_F else F[:, t]) if tvF else F0
+        Ct = C[:, t] if tvC else C0
+        if shared_F:
+            H = torch.matmul(torch.matmul(V, Ft).mT, Ft).mT.add_(Ct)
+        else:
+            H = torch.baddbmm(Ct, Ft.mT, torch.bmm(V, Ft))
+        if keep_huu:
+            Huus.append(H[:, :m, :m].clone())
+        if fused:
+            S, V, inv = elim(H, E, m)
+            pivbuf[:, t] = inv.reshape(Bt, m, 1, 1)
+            torch.neg(S, out=Kt[:, t])
+        else:
+            for i in range(m):
+                inv = torch.reciprocal(H[:, i:i + 1, i:i + 1], out=pivbuf[:, t, i])
+                r = H[:, i:i + 1, :] * inv
+                H.addcmul_(H[:, :, i:i + 1] - E[i], r, value=-1.0)
+            V = H[:, m:, m:]
+            torch.neg(H[:, :m, m:], out=Kt[:, t])
+        if keep_huu:
+            Vs.append(V)
+    Vs.reverse()
+    piv = pivbuf.reshape(Bt, T, m)
+    ok = (piv > 0).all(-1) & torch.isfinite(piv).all(-1)
+    Vst = torch.stack(Vs, 1) if keep_huu else torch.stack([V, VT.expand(Bt, n1, n1)], 1)
+    Huu = torch.stack(Huus[::-1], 1) if keep_huu else None
+    return RiccatiFactors(Kt=Kt, Huu=Huu, V=Vst, ok=ok)
+
+
+def closed_loop(F: torch.Tensor, Kt: torch.Tensor, m: int) -> torch.Tensor:
+    """``Φ̃_t = F̃_x̃ + F̃_u K̃_t`` for all steps at once: ``(Bt, T, n+1, n+1)`` (a sum of ``m`` outer
+    products, elementwise: cheaper than a batched matmul of many tiny matrices)."""
+    Phi = F[..., :, m:]
+    for j in range(m):
+        Phi = Phi + F[..., :, j:j + 1] * Kt[..., j:j + 1, :]
+    return Phi
+
+
+def closed_loop_rollout(F: torch.Tensor, Kt: torch.Tensor, x0t: torch.Tensor, T: int
+             ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Closed-loop rollout ``u_t = K̃_t x̃_t``, ``x̃_{t+1} = F̃_x̃ x̃_t + F̃_u u_t``: ``(x̃ (Bt, T+1, n+1),
+    u (Bt, T, m))``, written into preallocated buffers (no graph)."""
+    Bt, m, n1 = Kt.shape[0], Kt.shape[-2], Kt.shape[-1]
+    shared = F.shape[0] == 1
+    tv = F.shape[1] > 1
+    if not shared:
+        # z_t = [u_t; x̃_t] in one buffer: two products per step, written in place
+        Z = torch.empty(Bt, T + 1, m + n1, 1, dtype=Kt.dtype, device=Kt.device)
+        Z[:, 0, m:] = x0t.unsqueeze(-1)
+        for t in range(T):
+            torch.bmm(Kt[:, t], Z[:, t, m:], out=Z[:, t, :m])
+            torch.bmm(F[:, t if tv else 0], Z[:, t], out=Z[:, t + 1, m:])
+        Z = Z.squeeze(-1)
+        return Z[:, :, m:], Z[:, :T, :m]
+    xs = torch.empty(Bt, T + 1, n1, 1, dtype=Kt.dtype, device=Kt.device)
+    us = torch.empty(Bt, T, m, 1, dtype=Kt.dtype, device=Kt.device)
+    x = x0t.unsqueeze(-1)
+    xs[:, 0] = x
+    for t in range(T):
+        Ft = F[0, t if tv else 0]
+        u = torch.bmm(Kt[:, t], x)
+        x = torch.matmul(Ft[:, m:], x) + torch.matmul(Ft[:, :m], u)
+        us[:, t] = u
+        xs[:, t + 1] = x
+    return xs.squeeze(-1), us.squeeze(-1)
+
+
+def closed_loop_rollout_graph(F: torch.Tensor, Kt: torch.Tensor, x0t: torch.Tensor, T: int
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Same as :func:`closed_loop_rollout` without in-place writes (for autograd through the recursion)."""
+    x = x0t.unsqueeze(-1)
+    xs, us = [x], []
+    m = Kt.shape[-2]
+    for t in range(T):
+        Ft = F[:, t if F.shape[1] > 1 else 0]
+        u = torch.matmul(Kt[:, t], x)
+        x = torch.matmul(Ft[..., :, m:], x) + torch.matmul(Ft[..., :, :m], u)
+        xs.append(x)
+        us.append(u)
+    return torch.stack(xs, 1).squeeze(-1), torch.stack(us, 1).squeeze(-1)
+
+
+def backward_pass_graph(F, C, VT, T: int, Bt: int, m: int) -> RiccatiFactors:
+    """:func:`backward_pass` without in-place writes (autograd-friendly, for ``grad='unrolled'``)."""
+    n1 = VT.shape[-1]
+    V = VT.expand(Bt, n1, n1)
+    Ks, Hs, Vs, infos = [], [], [V], []
+    for t in range(T - 1, -1, -1):
+        Ft = F[:, t] if F.shape[1] > 1 else F[:, 0]
+        Ct = C[:, t] if C.shape[1] > 1 else C[:, 0]
+        H = torch.matmul(Ft.mT, torch.matmul(V, Ft)) + Ct
+        L, info = torch.linalg.cholesky_ex(H[:, :m, :m])
+        S = torch.cholesky_solve(H[:, :m, m:], L)
+        V = H[:, m:, m:] - torch.matmul(H[:, m:, :m], S)
+        V = 0.5 * (V + V.mT)
+        Ks.append(-S)
+        Hs.append(H[:, :m, :m])
+        Vs.append(V)
+        infos.append(info)
+    Ks.reverse()
+    Hs.reverse()
+    Vs.reverse()
+    infos.reverse()
+    return RiccatiFactors(Kt=torch.stack(Ks, 1), Huu=torch.stack(Hs, 1), V=torch.stack(Vs, 1),
+                          ok=torch.stack(infos, 1) == 0)
+
+
+def solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool = False,
+                keep_huu: bool = False, fused: bool = False, stage=None):
+    """Solve the canonical LQ problem; returns ``(x, u, J, factors, F)`` flattened to ``(Bt, ...)``.
+
+    ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.
+    """
+    n, m = A.shape[-1], B.shape[-1]
+    Bt = max(bs.numel(), 1)
+    if stage is None:
+        F, C, VT = assemble(A, B, c, Q, R, N, q, r, T, bs)
+    else:  # cost part precomputed by the caller (controllers.riccati.prepare)
+        F = assemble_dynamics(A, B, c, bs)
+        C, VT = stage
+    if graph:
+        fac = backward_pass_graph(F, C, VT, T, Bt, m)
+    else:
+        fac = backward_pass(F, C, VT, T, Bt, m, keep_huu, fused)
+    x0f = x0.expand(*bs, n).reshape(Bt, n)
+    x0t = torch.cat([x0f, torch.ones(Bt, 1, dtype=x0.dtype, device=x0.device)], -1)
+    xt, u = (closed_loop_rollout_graph if graph else closed_loop_rollout)(F, fac.Kt, x0t, T)
+    J = (x0t.unsqueeze(-2) @ fac.V[:, 0] @ x0t.unsqueeze(-1)).reshape(Bt)
+    return xt[..., :n], u, J, fac, F
