@@ -16,7 +16,8 @@ Steps:
 1. parameters — number of samples, noise levels, seed (an explicit torch.Generator);
 2. data — samples X_n = Exp_M(ε_n) around a known SPD matrix M (ε_n Gaussian in the whitened tangent
    coordinates), and q_n = q0 ⊗ exp(ω_n / 2) around a known rotation with random signs ±q_n;
-3. solve — ``karcher_mean`` on ``SPD(3)`` and on ``Sphere(3)`` (after ``hemisphere_align``);
+3. solve — ``karcher_mean`` (torchlie.manifolds.statistics) on ``SPD(3)`` and on ``Sphere(3)``
+   (after ``hemisphere_align``), both from ``torchlie.manifolds``;
 4. report — the error of the Riemannian mean and of the naive Euclidean average against the truth,
    the iterations used, and (optionally, with matplotlib) the error after each Gauss–Newton iteration,
    saved as ``out/riemannian_mean/convergence.png``.
@@ -32,8 +33,8 @@ from pathlib import Path
 
 import torch
 
-from torchlie import riemannian as rm
 from torchlie import so3
+from torchlie.manifolds import SPD, Sphere, hemisphere_align, karcher_mean, spd_dist, sphere_dist
 
 __all__ = ["main"]
 
@@ -45,13 +46,13 @@ def main(n_samples: int = 500, seed: int = 0, spd_noise: float = 0.3, rot_noise:
     dt = torch.float64
 
     # ---- SPD(3): a stiffness-like ellipsoid M, samples X_n = Exp_M(ε_n) ------------------------
-    spd = rm.SPD(3)
+    spd = SPD(3)
     M = torch.tensor([[4.0, 1.0, 0.5], [1.0, 2.0, 0.3], [0.5, 0.3, 1.0]], dtype=dt)
     eps = spd_noise * torch.randn(n_samples, spd.tangent_size, generator=g, dtype=dt)
     Xs = spd.exp_at(M.expand(n_samples, 3, 3), eps)
-    res_spd = rm.karcher_mean(spd, Xs)
-    err_spd = float(rm.spd_dist(res_spd.mean, M))
-    err_spd_euclid = float(rm.spd_dist(Xs.mean(0), M))
+    res_spd = karcher_mean(spd, Xs)
+    err_spd = float(spd_dist(res_spd.mean, M))
+    err_spd_euclid = float(spd_dist(Xs.mean(0), M))
     # the mean of N samples with whitened std σ has an error of about σ √(dim / N)
     bound_spd = 4 * spd_noise * math.sqrt(spd.dim / n_samples)
 
@@ -60,9 +61,9 @@ def main(n_samples: int = 500, seed: int = 0, spd_noise: float = 0.3, rot_noise:
     Rs = R0 @ so3.exp(rot_noise * torch.randn(n_samples, 3, generator=g, dtype=dt))
     q = so3.to_quaternion(Rs)                                            # (w, x, y, z)
     signs = torch.where(torch.rand(n_samples, 1, generator=g) < 0.5, -1.0, 1.0).to(dt)
-    q = rm.hemisphere_align(q * signs, q[0] * signs[0])
-    sphere = rm.Sphere(3)
-    res_q = rm.karcher_mean(sphere, q)
+    q = hemisphere_align(q * signs, q[0] * signs[0])
+    sphere = Sphere(3)
+    res_q = karcher_mean(sphere, q)
     err_q = float(so3.angle(R0.mT @ so3.from_quaternion(res_q.mean)))
     q_euclid = torch.nn.functional.normalize(q.mean(0), dim=-1)
     err_q_euclid = float(so3.angle(R0.mT @ so3.from_quaternion(q_euclid)))
@@ -90,8 +91,8 @@ def main(n_samples: int = 500, seed: int = 0, spd_noise: float = 0.3, rot_noise:
             print("matplotlib not available; skipping the figure")
             return out
         ks = list(range(1, 9))
-        e_spd = [float(rm.spd_dist(rm.karcher_mean(spd, Xs, max_iter=k).mean, res_spd.mean)) for k in ks]
-        e_q = [float(rm.sphere_dist(rm.karcher_mean(sphere, q, max_iter=k).mean, res_q.mean)) for k in ks]
+        e_spd = [float(spd_dist(karcher_mean(spd, Xs, max_iter=k).mean, res_spd.mean)) for k in ks]
+        e_q = [float(sphere_dist(karcher_mean(sphere, q, max_iter=k).mean, res_q.mean)) for k in ks]
         fig, ax = plt.subplots(figsize=(5, 3.5))
         ax.semilogy(ks, [max(e, 1e-17) for e in e_spd], "o-", label="SPD(3)")
         ax.semilogy(ks, [max(e, 1e-17) for e in e_q], "s-", label="S³ (quaternions)")

@@ -21,11 +21,16 @@ Conventions: SO(2)/SO(3) are rotation matrices, SE(2)/SE(3) homogeneous matrices
 is ``[v, ω]`` (seed 000 Eq. 2), se(2) is ``[vx, vy, θ]``; quaternions are ``(w, x, y, z)``.
 Every function accepts any number of leading batch dims, broadcasts binary operations, keeps dtype
 and device, and has finite gradients everywhere including at the identity and at angle π.
+
+The package ``manifolds`` builds on these modules: one class per space (Rⁿ, SO(2), SO(3), SE(3),
+spheres, height surfaces, SPD matrices, products) carrying both the ⊞/⊟/⊕ vocabulary of on-manifold
+MPC and the Exp/Log/transport vocabulary of Riemannian statistics (Karcher mean, Gaussians); its
+``__init__`` maps which file holds which space.  ``magnus`` holds dexp⁻¹ and the ME2 predictor.
 """
 
 import importlib
 
-__all__ = ["so2", "se2", "so3", "se3", "quaternion", "manifolds", "riemannian", "magnus"]
+__all__ = ["so2", "se2", "so3", "se3", "quaternion", "manifolds", "magnus"]
 
 
 def __getattr__(name: str):

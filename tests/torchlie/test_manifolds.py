@@ -1,4 +1,7 @@
-"""Tests for torchlie.manifolds (seed 003 §III, §V-A, Table I, Appendix).
+"""Tests of the ⊞/⊟/⊕ vocabulary of torchlie.manifolds (seed 003 §III, §V-A, Table I, Appendix):
+groups.py, sphere.py (S²), surface.py, product.py.  The Exp/Log vocabulary is tested in
+test_manifolds_riemannian.py, the agreement of the two and the one tolerance rule in
+test_manifolds_vocabularies.py.
 
 References are independent of the code under test: the axioms of Eq. 2, ``torch.func.jacrev``
 of the defining expressions of Eq. 23 evaluated per sample through the public ⊞/⊟/⊕, central
@@ -16,7 +19,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from torch.utils import _pytree as pytree
+from torch.utils import _pytree as pytree  # torch's registry itself is under test (no public module exists)
 
 from torchlie import so3
 from torchlie.manifolds import (
