@@ -368,12 +368,14 @@ class ResidualCost:
     def _jac(self, x: Tensor) -> tuple[Tensor, Tensor]:
         if self.jacobian is not None:
             return self.residual(x), self.jacobian(x)
+        keep = torch.is_grad_enabled()  # iLQR with grad="unrolled": keep the graph (as autograd_derivatives)
         with torch.enable_grad():
-            xg = x.detach().requires_grad_(True)
+            xg = _inputs(x, keep)
             f = self.residual(xg)
-            rows = [torch.autograd.grad(f[..., i].sum(), xg, retain_graph=True)[0]
+            rows = [torch.autograd.grad(f[..., i].sum(), xg, retain_graph=True, create_graph=keep)[0]
                     for i in range(f.shape[-1])]
-        return f.detach(), torch.stack(rows, -2)
+        J = torch.stack(rows, -2)
+        return (f, J) if keep else (f.detach(), J.detach())
 
     def evaluate(self, x: Tensor, u: Tensor) -> Tensor:
         f = self.residual(x)
@@ -395,24 +397,36 @@ class ResidualCost:
 # --------------------------------------------------------------------------------------------------
 
 
+def _inputs(x: Tensor, keep: bool) -> Tensor:
+    """``x`` as an input to differentiate at: itself when its graph is kept and it has one."""
+    return x if keep and x.requires_grad else x.detach().requires_grad_(True)
+
+
 def autograd_derivatives(cost, x: Tensor, u: Tensor):
-    """Exact gradient and per-step Hessian blocks of a time-separable cost by double backward."""
+    """Exact gradient and per-step Hessian blocks of a time-separable cost by double backward.
+
+    Called with gradients enabled (iLQR with ``grad="unrolled"``), the derivatives keep their graph
+    to ``x``, ``u`` and the cost's parameters; otherwise they are constants (no graph)."""
     n, m = x.shape[-1], u.shape[-1]
+    keep = torch.is_grad_enabled()
     with torch.enable_grad():
-        xg = x.detach().requires_grad_(True)
-        ug = u.detach().requires_grad_(True)
+        xg, ug = _inputs(x, keep), _inputs(u, keep)
         J = cost.evaluate(xg, ug).sum()
         gx, gu = torch.autograd.grad(J, (xg, ug), create_graph=True)
-        Hxx, Hxu, Huu = hessian_rows(gx, gu, xg, ug, n, m)
-    return gx.detach(), gu.detach(), Hxx, Hxu[..., :-1, :, :].mT, Huu
+        Hxx, Hxu, Huu = hessian_rows(gx, gu, xg, ug, n, m, keep_graph=keep)
+    if not keep:
+        gx, gu = gx.detach(), gu.detach()
+    return gx, gu, Hxx, Hxu[..., :-1, :, :].mT, Huu
 
 
-def hessian_rows(gx: Tensor, gu: Tensor, xg: Tensor, ug: Tensor, n: int, m: int):
-    """Per-time-step Hessian blocks of a sum of per-step terms from its gradient (built with a graph)."""
+def hessian_rows(gx: Tensor, gu: Tensor, xg: Tensor, ug: Tensor, n: int, m: int, keep_graph: bool = False):
+    """Per-time-step Hessian blocks of a sum of per-step terms from its gradient (built with a graph);
+    constants unless ``keep_graph``."""
     rx, rxu, ru = [], [], []
+    kw = dict(retain_graph=True, allow_unused=True, create_graph=keep_graph)
     for i in range(n):
         if gx.requires_grad:
-            a, b = torch.autograd.grad(gx[..., i].sum(), (xg, ug), retain_graph=True, allow_unused=True)
+            a, b = torch.autograd.grad(gx[..., i].sum(), (xg, ug), **kw)
         else:
             a = b = None
         rx.append(torch.zeros_like(xg) if a is None else a)
@@ -421,11 +435,12 @@ def hessian_rows(gx: Tensor, gu: Tensor, xg: Tensor, ug: Tensor, n: int, m: int)
                    else torch.cat([b, torch.zeros_like(b[..., :1, :])], -2))
     for i in range(m):
         if gu.requires_grad:
-            (c,) = torch.autograd.grad(gu[..., i].sum(), (ug,), retain_graph=True, allow_unused=True)
+            (c,) = torch.autograd.grad(gu[..., i].sum(), (ug,), **kw)
         else:
             c = None
         ru.append(torch.zeros_like(ug) if c is None else c)
-    return torch.stack(rx, -2).detach(), torch.stack(rxu, -2).detach(), torch.stack(ru, -2).detach()
+    out = torch.stack(rx, -2), torch.stack(rxu, -2), torch.stack(ru, -2)
+    return out if keep_graph else tuple(v.detach() for v in out)
 
 
 def cost_derivatives(cost, x: Tensor, u: Tensor):

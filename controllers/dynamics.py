@@ -228,7 +228,7 @@ def check_system(d: Any, owner: str, name: str = "dynamics") -> None:
                         f"got {type(d).__name__}")
     jac = getattr(d, "jacobian", None)
     if jac is not None and not callable(jac):
-        raise TypeError(f"{owner}: the {name}' attribute 'jacobian' must be callable or None")
+        raise TypeError(f"{owner}: attribute 'jacobian' of field '{name}' must be callable or None")
 
 
 def is_time_invariant(d: Any) -> bool:
@@ -241,10 +241,26 @@ def has_analytic_jacobian(d: Any) -> bool:
     return isinstance(d, LinearDynamics) or callable(getattr(d, "jacobian", None))
 
 
+def _full_batch(d: Any, x: torch.Tensor, u: torch.Tensor, t0: int) -> torch.Size:
+    """Batch shape of a step along ``x (*B, T, n)``, ``u (*B, T, m)``, including the batch dims of the
+    system's own parameters (e.g. one pendulum length per element), learnt from one step."""
+    y = d.step(x[..., 0, :], u[..., 0, :], t0)
+    return torch.broadcast_shapes(x.shape[:-2], u.shape[:-2], y.shape[:-1])
+
+
+def _fold_time(d: Any, x: torch.Tensor, u: torch.Tensor, t0: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """``x``, ``u`` time-major ``(T, *B, ·)`` with every batch dim of the step present, so that time is
+    folded into the batch *in front of* the parameters' batch dims, never aligned with them."""
+    bs = _full_batch(d, x, u, t0)
+    T = u.shape[-2]
+    return (x[..., :T, :].expand(*bs, T, x.shape[-1]).movedim(-2, 0),
+            u.expand(*bs, T, u.shape[-1]).movedim(-2, 0))
+
+
 def step_all(d: System, x: torch.Tensor, u: torch.Tensor, t0: int = 0) -> torch.Tensor:
     """``f(x_t, u_t, t0 + t)`` for all ``t``: ``x (*B, T, n)``, ``u (*B, T, m)`` -> ``(*B, T, n)``."""
     if is_time_invariant(d):
-        return d.step(x.movedim(-2, 0), u.movedim(-2, 0), t0).movedim(0, -2)
+        return d.step(*_fold_time(d, x, u, t0), t0).movedim(0, -2)
     return torch.stack([d.step(x[..., t, :], u[..., t, :], t0 + t) for t in range(u.shape[-2])], -2)
 
 
@@ -298,7 +314,8 @@ def _jacobians(f, x: torch.Tensor, u: torch.Tensor, t: int, method: JacobianMeth
     y = (lambda: fn(x, u, t) if value else None)
     if isinstance(f, LinearDynamics) and method in (JacobianMethod.AUTO, JacobianMethod.ANALYTIC):
         A, B = time_slice(f.A, t, 2), time_slice(f.B, t, 2)
-        return y(), A.expand(*bs, n, n), B.expand(*bs, n, m)
+        full = torch.broadcast_shapes(bs, A.shape[:-2], B.shape[:-2])  # per-element matrices
+        return y(), A.expand(*full, n, n), B.expand(*full, n, m)
     if method is JacobianMethod.AUTO:
         method = JacobianMethod.ANALYTIC if jac is not None else JacobianMethod.VMAP
     if method is JacobianMethod.ANALYTIC:
@@ -347,7 +364,7 @@ def trajectory_jacobians(d: System, x: torch.Tensor, u: torch.Tensor, t0: int = 
     ti = is_time_invariant(d) if time_invariant is None else time_invariant
     method = enum_arg(JacobianMethod, method, "method", "trajectory_jacobians")
     if ti:
-        _, A, B = _jacobians(d, x[..., :T, :].movedim(-2, 0), u.movedim(-2, 0), t0, method, False)
+        _, A, B = _jacobians(d, *_fold_time(d, x, u, t0), t0, method, False)
         return A, B
     As, Bs = [], []
     for t in range(T):
@@ -376,10 +393,11 @@ def linearize(f: System | Callable, x: torch.Tensor, u: torch.Tensor, t0: int = 
         raise ValueError(f"linearize: x must have T = {T} (or T+1) steps to match u, got {tuple(x.shape)}")
     if _step_fn(f) is None:
         raise TypeError(f"linearize: 'f' must be a system or a callable f(x, u, t), got {type(f).__name__}")
-    bs = torch.broadcast_shapes(x.shape[:-2], u.shape[:-2])
+    sys = f if callable(getattr(f, "step", None)) else NonlinearDynamics(f, x.shape[-1], u.shape[-1])
+    # the batch shape includes the system's own (per-element parameters or matrices)
+    bs = _full_batch(sys, x, u, t0)
     x = x.expand(*bs, T, x.shape[-1])
     u = u.expand(*bs, T, u.shape[-1])
-    sys = f if callable(getattr(f, "step", None)) else NonlinearDynamics(f, x.shape[-1], u.shape[-1])
     ti = is_time_invariant(sys) if time_invariant is None else time_invariant
     A, B = trajectory_jacobians(sys, x, u, t0, method, ti)
     A = A.movedim(0, -3).expand(*bs, T, *A.shape[-2:])

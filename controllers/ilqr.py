@@ -564,8 +564,8 @@ def ilqr(
         at most ``tol_kkt`` at the returned point), ``STALLED`` (stopped moving at a point that is not
         certified), ``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``
         (no μ up to ``mu_max`` gave a positive-definite ``Q_uu`` and a certified inner box QP),
-        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``: that element's outputs are NaN),
-        ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper`` somewhere: outputs NaN) or
+        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``: that element's trajectory, gains, cost and
+        KKT residual are NaN), ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper`` somewhere: NaN likewise) or
         ``DIVERGED`` (the initial rollout is not finite).  Every other element is solved as if alone.
     """
     if not isinstance(problem, ILQRProblem):
@@ -623,6 +623,9 @@ def ilqr(
     x = torch.where(b1, nanv, x)
     u = torch.where(b1, nanv, u)
     cost = torch.where(bad, nanv, cost)
+    K = torch.where(b1.unsqueeze(-1), nanv, K)
+    kff = torch.where(b1, nanv, kff)
+    kkt = torch.where(bad, nanv, kkt)
     if crossed is not None:
         reason = torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), reason)
     status = SolverStatus(converged=reason == int(Reason.CONVERGED), iterations=iters, reason=reason)

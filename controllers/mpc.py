@@ -179,10 +179,15 @@ class MPCPolicy(nn.Module):
         self.grad = enum_arg(GradMode, grad, "grad", "MPCPolicy")
         self.options = options
         for name, v in (("u_lower", u_lower), ("u_upper", u_upper)):
-            if isinstance(v, Tensor) and not v.dtype.is_floating_point:
-                raise TypeError(f"MPCPolicy: argument '{name}' must be a float or a floating tensor")
-            self.register_buffer(name, None if v is None else torch.as_tensor(
-                v, dtype=v.dtype if isinstance(v, Tensor) else torch.get_default_dtype()).reshape(-1))
+            if isinstance(v, Tensor):
+                if not v.dtype.is_floating_point:
+                    raise TypeError(f"MPCPolicy: argument '{name}' must be a float or a floating tensor")
+                self.register_buffer(name, v.detach().clone().reshape(-1))  # moves with .to()
+            elif v is None or isinstance(v, (int, float)):
+                setattr(self, name, None if v is None else float(v))  # a float takes the problem's dtype
+            else:
+                raise TypeError(f"MPCPolicy: argument '{name}' must be None, a float or a floating tensor, "
+                                f"got {type(v).__name__}")
         if is_dataclass(system):
             for f in fields(system):
                 v = getattr(system, f.name)

@@ -48,7 +48,7 @@ def test_rollout_matches_manual_loop():
     torch.testing.assert_close(rollout(NonlinearDynamics(f, 3, 2), x0, u), x)
 
 
-# ---- linearize (controllers.linearize) --------------------------------------------------------------
+# ---- linearize (controllers.dynamics) ---------------------------------------------------------------
 
 
 def _pendulum():
@@ -180,3 +180,35 @@ def test_linearize_of_a_system_model_equals_its_analytic_jacobians():
     torch.testing.assert_close(lin.A, trajectory_jacobians(p, x, u)[0].movedim(0, -3))
     nxt = (lin.A @ x[..., :6, :].unsqueeze(-1) + lin.B @ u.unsqueeze(-1)).squeeze(-1) + lin.c
     torch.testing.assert_close(nxt, p.step(x[..., :6, :], u), atol=1e-14, rtol=0)
+
+
+def test_per_element_parameters_or_matrices_with_an_unbatched_trajectory():
+    """A system whose parameters (or matrices) carry the batch while x does not: time is folded into the
+    batch in front of the parameters' dims, so step t never sees element t's parameter (it did, silently,
+    when T equalled the batch size)."""
+    from controllers.dynamics import jacobians, linearize, step_all, trajectory_jacobians
+    from controllers.systems import Pendulum
+
+    g = torch.Generator().manual_seed(8)
+    L = torch.tensor([1.0, 2.0, 3.0], dtype=D)
+    T = 3  # = the parameters' batch size, the case that used to mix them up
+    x = torch.randn(T + 1, 2, dtype=D, generator=g)
+    u = torch.randn(T, 1, dtype=D, generator=g)
+    lin = linearize(Pendulum(length=L), x, u)
+    A, B = trajectory_jacobians(Pendulum(length=L), x, u)
+    nxt = step_all(Pendulum(length=L), x[:T], u)
+    assert lin.A.shape == (3, T, 2, 2) and A.shape == (T, 3, 2, 2) and nxt.shape == (3, T, 2)
+    for i in range(3):
+        one = Pendulum(length=float(L[i]))
+        li = linearize(one, x, u)
+        torch.testing.assert_close(lin.A[i], li.A, atol=0, rtol=0)
+        torch.testing.assert_close(lin.c[i], li.c, atol=0, rtol=0)
+        torch.testing.assert_close(A[:, i], li.A, atol=0, rtol=0)
+        torch.testing.assert_close(nxt[i], step_all(one, x[:T], u), atol=0, rtol=0)
+    rnd = lambda *s: torch.randn(*s, dtype=D, generator=g)
+    d = LinearDynamics(rnd(3, 1, 2, 2), rnd(3, 1, 2, 1))
+    y, Aj, Bj = jacobians(d, x[0], u[0])
+    assert Aj.shape == (3, 2, 2) and Bj.shape == (3, 2, 1) and y.shape == (3, 2)
+    ld = linearize(d, x, u)
+    torch.testing.assert_close(ld.A, d.A.expand(3, T, 2, 2))
+    torch.testing.assert_close(ld.c, torch.zeros(3, T, 2, dtype=D), atol=1e-14, rtol=0)

@@ -294,6 +294,8 @@ def test_crossed_tensor_limits_are_a_per_element_status():
     sol = ilqr(crossed, grad="none")
     assert sol.status.reason_names()[1] == "INFEASIBLE_BOUNDS"
     assert bool(torch.isnan(sol.u[1]).all()) and bool(torch.isnan(sol.cost[1]))
+    assert bool(torch.isnan(sol.K[1]).all()) and bool(torch.isnan(sol.k[1]).all())
+    assert bool(torch.isnan(sol.kkt_residual[1]))
     for i in (0, 2):
         alone = ilqr(ILQRProblem(prob.dynamics, prob.cost, x0[i], 12, u_lower=-2.0, u_upper=2.0), grad="none")
         torch.testing.assert_close(sol.u[i], alone.u, atol=1e-10, rtol=0)
@@ -376,3 +378,48 @@ def test_multi_dim_batch_equals_flattened(method):
     ga = torch.autograd.grad(a.cost.sum(), length)[0]
     gb = torch.autograd.grad(b.cost.sum(), length)[0]
     torch.testing.assert_close(ga, gb, atol=1e-10, rtol=1e-10)
+
+
+class _AutogradCost:
+    """A cost with no derivatives of its own (iLQR differentiates ``evaluate`` by autograd)."""
+
+    def __init__(self, xr):
+        self.xr = xr
+
+    def evaluate(self, x, u):
+        return ((x - self.xr.unsqueeze(-2)) ** 2).sum((-1, -2)) + 0.1 * (u**2).sum((-1, -2))
+
+
+@pytest.mark.parametrize("kind", ["autograd", "residual"])
+def test_unrolled_gradients_through_autograd_and_residual_costs(kind):
+    """grad="unrolled" differentiates through derivatives that iLQR gets by autograd (a cost without
+    ``derivatives``, a ResidualCost without a Jacobian): it must equal the implicit gradient and central
+    differences (a detached derivative lost the cost's dependence on its parameters)."""
+    from controllers.costs import ResidualCost
+
+    T = 6
+    x0 = torch.tensor([[1.0, 0.0], [0.5, 0.2]], dtype=D64)
+
+    def solve(length, xr, grad):
+        if kind == "autograd":
+            cost = _AutogradCost(xr)
+        else:
+            eye = torch.eye(2, dtype=D64)
+            cost = ResidualCost(lambda x: x - xr.unsqueeze(-2), eye, 0.1 * eye[:1, :1])
+        s = ilqr(ILQRProblem(Pendulum(length=length), cost, x0, T, u_lower=-2.0, u_upper=2.0), grad=grad,
+                 options=ILQROptions(max_iter=200, tol=1e-13, tol_cost=0.0))
+        return s, s.u.sum() + s.x.sum()
+
+    grads = {}
+    for grad in ("implicit", "unrolled"):
+        L = torch.tensor(1.3, dtype=D64, requires_grad=True)
+        xr = torch.zeros(2, 2, dtype=D64, requires_grad=True)
+        s, loss = solve(L, xr, grad)
+        assert s.status.all_converged
+        grads[grad] = torch.autograd.grad(loss, (L, xr))
+    h = 1e-6
+    fd = (float(solve(torch.tensor(1.3 + h, dtype=D64), torch.zeros(2, 2, dtype=D64), "none")[1])
+          - float(solve(torch.tensor(1.3 - h, dtype=D64), torch.zeros(2, 2, dtype=D64), "none")[1])) / (2 * h)
+    assert abs(float(grads["implicit"][0]) - fd) < 1e-5 * max(1.0, abs(fd))
+    for a, b in zip(grads["unrolled"], grads["implicit"]):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=1e-6)

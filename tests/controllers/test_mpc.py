@@ -232,3 +232,18 @@ def test_state_reset_of_selected_elements_and_batch_shapes():
         s1.reset(torch.zeros(2, 3))
     with pytest.raises(ValueError, match="argument 'batch_shape'"):
         MPCState.cold((2, -1), 6, 1)
+
+
+def test_float_limits_take_the_policy_dtype():
+    """Float limits are numbers, not tensors of the default dtype: a float64 policy under a float32 default
+    dtype (and a float32 one) runs with u_lower=-2.0, u_upper=2.0; a tensor limit keeps its dtype and moves
+    with .to()."""
+    assert torch.get_default_dtype() == torch.float32
+    for dtype in (D64, torch.float32):
+        pol = MPCPolicy(Pendulum(), 5, _cost(5, dtype), u_lower=-2.0, u_upper=2.0)
+        a, _ = pol(torch.full((4, 2), 0.5, dtype=dtype), pol.initial_state(4))
+        assert a.dtype == dtype and bool((a.abs() <= 2.0 + 1e-6).all())
+    pol = MPCPolicy(Pendulum(), 5, _cost(5, torch.float32), u_lower=torch.tensor([-2.0]), u_upper=2.0).to(D64)
+    assert pol.u_lower.dtype == D64 and pol.u_upper == 2.0
+    with pytest.raises(TypeError, match="argument 'u_lower'"):
+        MPCPolicy(Pendulum(), 5, _cost(5), u_lower="-2")
