@@ -1,5 +1,13 @@
-"""learning: gymnasium environments, batched rollouts, demonstrations and RL baselines built on
-:mod:`controllers` (see ARCHITECTURE.md).  The package is reserved in this release; its modules
-arrive with the learning issues."""
+"""learning: gymnasium environments (single and natively batched), batched rollout evaluation and RL
+baselines built on :mod:`controllers` (see ARCHITECTURE.md).
 
-__all__: list[str] = []
+Nothing is registered with gymnasium at import: call :func:`register_envs`.  stable-baselines3 is
+imported only by :mod:`learning.sb3`.
+"""
+
+from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
+from learning.registration import env_id, register_envs
+from learning.vector import TaskVectorEnv
+
+__all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "CartPoleSwingUp",
+           "register_envs", "env_id"]

@@ -54,8 +54,10 @@ def euler_step(x: Tensor, acc: Tensor, dt: Tensor | float) -> Tensor:
     q, v = x[..., :k], x[..., k:]
     if isinstance(dt, Tensor):
         dt = dt.unsqueeze(-1)
-    v1 = v + dt * acc
-    return torch.cat([q + dt * v1, v1], dim=-1)
+        v1 = v + dt * acc
+        return torch.cat([q + dt * v1, v1], dim=-1)
+    v1 = torch.add(v, acc, alpha=dt)  # a float step: one fused kernel per line, no scalar tensor
+    return torch.cat([torch.add(q, v1, alpha=dt), v1], dim=-1)
 
 
 def euler_jacobian(a_q: Tensor, a_v: Tensor, a_u: Tensor, dt: Tensor | float) -> tuple[Tensor, Tensor]:

@@ -1,0 +1,171 @@
+"""The batched vector env through the shipped conformance suite (against gymnasium's SyncVectorEnv over
+the single env, to 1e-12 in float64), the suite's own power to catch broken envs, and the env's
+contract on bad input."""
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.vector import AutoresetMode
+
+import learning
+from learning import TASKS, TaskVectorEnv
+from learning.conformance import check_against_sync, check_fresh_buffers, check_vector_env
+
+learning.register_envs()
+
+
+def _make(name, output="numpy", dtype=torch.float64, steps=13, N=5, device="cpu"):
+    return lambda mode: TaskVectorEnv(name, N, max_episode_steps=steps, autoreset_mode=mode, dtype=dtype,
+                                      output=output, device=device)
+
+
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_conformance_and_equivalence_to_the_single_env(name):
+    single = lambda: gym.make(learning.env_id(name), max_episode_steps=13, dtype=torch.float64)
+    report = check_vector_env(_make(name), single, tol=1e-12)
+    assert len(report["checks"]) == 13
+
+
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_conformance_in_tensor_mode_float32(name):
+    check_vector_env(_make(name, output="torch", dtype=torch.float32))
+
+
+def test_cartpole_equivalence_through_terminations():
+    """Bang-bang actions drive carts off the track: terminations (not only time limits) are compared."""
+    name = "CartPoleSwingUp"
+    ours = TaskVectorEnv(name, 6, max_episode_steps=500, dtype=torch.float64)
+    singles = [gym.make(learning.env_id(name), max_episode_steps=500, dtype=torch.float64) for _ in range(6)]
+    ours.reset(seed=4)
+    for i, e in enumerate(singles):
+        e.reset(seed=4 + i)
+    terms = 0
+    for k in range(300):
+        a = np.full((6, 1), 1.0 if (k // 25) % 2 else -1.0)
+        o, r, te, tr, _ = ours.step(a)
+        for i, e in enumerate(singles):
+            if k > 0 and prev_done[i]:  # noqa: F821 - NEXT_STEP: ours resets on this step
+                oi, _ = e.reset()
+                ri, tei, tri = 0.0, False, False
+            else:
+                oi, ri, tei, tri, _ = e.step(a[i])
+            np.testing.assert_allclose(o[i], oi, rtol=0, atol=1e-12)
+            assert (r[i], te[i], tr[i]) == (pytest.approx(ri, abs=1e-12), tei, tri)
+        prev_done = te | tr  # noqa: F841
+        terms += int(te.sum())
+    assert terms >= 6
+
+
+def test_make_vec_uses_the_vector_entry_point_and_passes_the_time_limit():
+    env = gym.make_vec(learning.env_id("PendulumSwingUp"), num_envs=3)
+    assert isinstance(env.unwrapped, TaskVectorEnv) and env.unwrapped.max_episode_steps == 200
+    env = gym.make_vec(learning.env_id("PendulumSwingUp"), num_envs=3, max_episode_steps=4)
+    env.reset(seed=0)
+    flags = [env.step(np.zeros((3, 1), np.float32))[3] for _ in range(4)]
+    assert not any(f.any() for f in flags[:3]) and flags[3].all()
+
+
+class _AliasingEnv(TaskVectorEnv):
+    """Broken on purpose: returns the same observation buffer every step."""
+
+    def step(self, actions):
+        o, *rest = super().step(actions)
+        if not hasattr(self, "_buf"):
+            self._buf = o
+        self._buf[...] = o
+        return (self._buf, *rest)
+
+
+class _SeedEnv(TaskVectorEnv):
+    """Broken on purpose: every environment gets the same seed."""
+
+    def reset(self, *, seed=None, options=None):
+        return super().reset(seed=None if seed is None else [seed] * self.num_envs, options=options)
+
+
+class _NoZeroRewardEnv(TaskVectorEnv):
+    """Broken on purpose: the NEXT_STEP reset step reports the reward of the ignored action."""
+
+    def step(self, actions):
+        ar = self._ended.clone()
+        r_before = self.task.transition(self._x, torch.as_tensor(actions, dtype=self.dtype), self._scale)[2]
+        o, r, te, tr, info = super().step(actions)
+        r = np.where(ar.numpy(), r_before.numpy(), r)
+        return o, r, te, tr, info
+
+
+def test_the_suite_catches_broken_envs():
+    single = lambda: gym.make(learning.env_id("PendulumSwingUp"), max_episode_steps=13, dtype=torch.float64)
+    with pytest.raises(AssertionError, match="overwrote|modified"):
+        check_fresh_buffers(lambda: _AliasingEnv("PendulumSwingUp", 4, dtype=torch.float64))
+    for broken in (_SeedEnv, _NoZeroRewardEnv):
+        make = lambda mode, broken=broken: broken("PendulumSwingUp", 4, max_episode_steps=13,
+                                                  autoreset_mode=mode, dtype=torch.float64)
+        with pytest.raises(AssertionError, match="differ from the reference"):
+            check_against_sync(make, single, AutoresetMode.NEXT_STEP)
+
+
+def test_one_bad_environment_does_not_poison_the_batch():
+    env = TaskVectorEnv("CartPoleSwingUp", 4, dtype=torch.float64)
+    ref = TaskVectorEnv("CartPoleSwingUp", 4, dtype=torch.float64)
+    env.reset(seed=0)
+    ref.reset(seed=0)
+    a = np.full((4, 1), 0.3)
+    bad = a.copy()
+    bad[2] = np.nan
+    o, r, te, tr, info = env.step(bad)
+    o_ref, r_ref, *_ = ref.step(a)
+    keep = [0, 1, 3]
+    np.testing.assert_array_equal(o[keep], o_ref[keep])
+    np.testing.assert_array_equal(r[keep], r_ref[keep])
+    assert tr.tolist() == [False, False, True, False] and not te.any()
+    assert info["invalid"].tolist() == [False, False, True, False] and np.isfinite(o).all()
+    o, r, te, tr, info = env.step(a)  # NEXT_STEP: env 2 restarts, the others go on
+    assert r[2] == 0.0 and not tr.any() and "invalid" not in info
+
+
+def test_bad_arguments_are_rejected_with_the_argument_named():
+    with pytest.raises(ValueError, match="num_envs"):
+        TaskVectorEnv("PendulumSwingUp", 0)
+    with pytest.raises(ValueError, match="output"):
+        TaskVectorEnv("PendulumSwingUp", 2, output="jax")
+    with pytest.raises(ValueError, match="autoreset_mode"):
+        TaskVectorEnv("PendulumSwingUp", 2, autoreset_mode="sometimes")
+    env = TaskVectorEnv("PendulumSwingUp", 2, autoreset_mode="same_step")
+    assert env.metadata["autoreset_mode"] is AutoresetMode.SAME_STEP
+    with pytest.raises(RuntimeError, match="reset"):
+        env.step(np.zeros((2, 1)))
+    env.reset(seed=0)
+    with pytest.raises(ValueError, match=r"shape \(2, 1\)"):
+        env.step(np.zeros((3, 1)))
+    with pytest.raises(ValueError, match="reset_mask"):
+        env.reset(options={"reset_mask": np.array([1, 0])})
+    with pytest.raises(ValueError, match="seed"):
+        env.reset(seed=[1, 2, 3])
+
+
+def test_seeding_matches_sync_vector_env_convention_and_lists():
+    env = TaskVectorEnv("CartPoleSwingUp", 3, dtype=torch.float64)
+    o_int, _ = env.reset(seed=10)
+    o_list, _ = env.reset(seed=[10, 11, 12])
+    np.testing.assert_array_equal(o_int, o_list)
+    o_mix, _ = env.reset(seed=[10, None, 12])
+    np.testing.assert_array_equal(o_mix[[0, 2]], o_int[[0, 2]])
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (none on this machine)")
+@pytest.mark.parametrize("name", sorted(TASKS))
+def test_cuda_matches_cpu(name):
+    cpu = TaskVectorEnv(name, 64, dtype=torch.float64, output="torch")
+    gpu = TaskVectorEnv(name, 64, dtype=torch.float64, output="torch", device="cuda")
+    cpu.reset(seed=0)
+    gpu.reset(seed=0)
+    g = torch.Generator().manual_seed(0)
+    for _ in range(250):
+        a = torch.rand(64, 1, generator=g, dtype=torch.float64) * 2 - 1
+        oc, rc, tc, trc, _ = cpu.step(a)
+        og, rg, tg, trg, _ = gpu.step(a.cuda())
+        assert og.device.type == "cuda"
+        torch.testing.assert_close(og.cpu(), oc, rtol=0, atol=1e-9)
+        assert torch.equal(tg.cpu(), tc) and torch.equal(trg.cpu(), trc)
