@@ -20,6 +20,7 @@ _COMMANDS: tuple[tuple[tuple[str, ...], str, str], ...] = (
     (("bench", "lie"), "liecontrol.bench.lie", "Lie-group ops vs pypose/roma: speed and round-trip error"),
     (("bench", "lqr"), "liecontrol.bench.lqr", "LQR vs pypose and mpc.pytorch"),
     (("bench", "ilqr"), "liecontrol.bench.ilqr", "iLQR swing-up vs mpc.pytorch box-DDP"),
+    (("bench", "envs"), "liecontrol.bench.envs", "vector-env steps/s vs gymnasium SyncVectorEnv and EnvPool"),
     (("reproduce", "me2"), "liecontrol.reproduce.me2",
      "seed 000 Sec. 4: ME2 horizon prediction, Table 1, Fig. 3-4"),
 )

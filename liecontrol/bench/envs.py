@@ -1,0 +1,178 @@
+"""``liecontrol bench envs``: environment steps per second of our batched vector envs against gymnasium's
+``SyncVectorEnv`` and EnvPool (C++), in one run.
+
+Our pendulum swing-up (Pendulum-v1's physics and reward, :mod:`learning.envs.pendulum`) and continuous
+cart-pole swing-up are stepped as :class:`learning.vector.TaskVectorEnv` in tensor mode (actions and
+outputs stay torch tensors on the device) and numpy mode (numpy in and out, what SB3 and stock wrappers
+see), on CPU and, when present, CUDA; ``ours-compiled`` is the same env built with ``compile=True``
+(the pure part of the step through ``torch.compile``).  The anchors step their closest tasks:
+gymnasium's ``Pendulum-v1`` and ``CartPole-v1`` (discrete balancing: the same physics family, a
+different task) through ``gymnasium.vector.SyncVectorEnv``, and EnvPool's C++ ``Pendulum-v1`` and
+``CartPole-v1`` (numpy in and out, its default thread pool).  Every measurement steps with random
+actions for ``--seconds`` after warm-up, the median of ``--repeats`` samples is kept, and records carry
+the ratio to each anchor at the same number of environments.  Autoreset is on everywhere.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+from liecontrol.report import print_table, restores_threads, sync, write_json
+
+__all__ = ["add_arguments", "run", "measure"]
+
+ENVS = {"pendulum": ("PendulumSwingUp", "Pendulum-v1"), "cartpole": ("CartPoleSwingUp", "CartPole-v1")}
+IMPLS = ("ours", "gymnasium-sync", "envpool")
+COLUMNS = ["env", "impl", "mode", "device", "num_envs", "steps_per_s", "vs_gymnasium_sync", "vs_envpool",
+           "status"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
+    parser.add_argument("--num-envs", nargs="+", type=int, default=[1, 16, 64, 256, 1024, 4096])
+    parser.add_argument("--impls", nargs="+", default=list(IMPLS), choices=list(IMPLS))
+    parser.add_argument("--modes", nargs="+", default=["torch", "numpy"], choices=["torch", "numpy"],
+                        help="output modes of our env")
+    parser.add_argument("--device", nargs="+", default=None, help="devices of our env (default cpu, +cuda)")
+    parser.add_argument("--seconds", type=float, default=0.25, help="stepping time per sample")
+    parser.add_argument("--repeats", type=int, default=5, help="samples per measurement (median)")
+    parser.add_argument("--max-sync-envs", type=int, default=1024,
+                        help="largest SyncVectorEnv measured (a Python loop; 4096 takes long to build)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads of our env (default 1: robust on a shared machine; "
+                             "EnvPool keeps its own pool of one thread per core)")
+    parser.add_argument("--no-compile", action="store_true",
+                        help="skip the ours-compiled rows (TaskVectorEnv(compile=True))")
+    parser.add_argument("--json", default=None, metavar="PATH", help="write the records as JSON")
+
+
+def _rate(step, N: int, seconds: float, repeats: int, device=None, warmup: int = 5) -> float:
+    for _ in range(warmup):
+        step()
+    sync(device)
+    rates = []
+    for _ in range(max(repeats, 1)):
+        k, t0 = 0, time.perf_counter()
+        while True:
+            step()
+            k += 1
+            if k % 8 == 0 or N >= 256:
+                sync(device)
+                dt = time.perf_counter() - t0
+                if dt >= seconds:
+                    break
+        rates.append(N * k / dt)
+    return statistics.median(rates)
+
+
+def _ours(task: str, N: int, mode: str, device: str, seconds: float, repeats: int, compiled: bool) -> float:
+    from learning import TaskVectorEnv
+
+    env = TaskVectorEnv(task, N, device=device, output=mode, compile=compiled)
+    env.reset(seed=0)
+    g = torch.Generator().manual_seed(0)
+    acts = [torch.rand(N, env.task.m, generator=g) * 2 - 1 for _ in range(8)]
+    acts = [a.to(device) for a in acts] if mode == "torch" else [a.numpy() for a in acts]
+    it = iter(range(1 << 62))
+    return _rate(lambda: env.step(acts[next(it) % 8]), N, seconds, repeats, device)
+
+
+def _gym_actions(env, N: int, rng) -> list:
+    sp = env.single_action_space
+    if hasattr(sp, "n"):
+        return [rng.integers(0, sp.n, size=N) for _ in range(8)]
+    return [rng.uniform(sp.low, sp.high, size=(N, *sp.shape)).astype(sp.dtype) for _ in range(8)]
+
+
+def _gymnasium(gid: str, N: int, seconds: float, repeats: int) -> float:
+    import gymnasium as gym
+
+    env = gym.make_vec(gid, num_envs=N, vectorization_mode="sync")
+    env.reset(seed=0)
+    acts = _gym_actions(env, N, np.random.default_rng(0))
+    it = iter(range(1 << 62))
+    return _rate(lambda: env.step(acts[next(it) % 8]), N, seconds, repeats)
+
+
+def _envpool(gid: str, N: int, seconds: float, repeats: int) -> float:
+    import warnings
+
+    import envpool
+
+    with warnings.catch_warnings():  # its own spaces warn about float64 bounds cast to float32
+        warnings.simplefilter("ignore")
+        env = envpool.make(gid, env_type="gymnasium", num_envs=N, seed=0)
+    env.reset()
+    sp = env.action_space
+    rng = np.random.default_rng(0)
+    if hasattr(sp, "n"):
+        acts = [rng.integers(0, sp.n, size=N) for _ in range(8)]
+    else:
+        acts = [rng.uniform(sp.low, sp.high, size=(N, *sp.shape)).astype(sp.dtype) for _ in range(8)]
+    it = iter(range(1 << 62))
+    return _rate(lambda: env.step(acts[next(it) % 8]), N, seconds, repeats)
+
+
+@restores_threads
+def measure(envs=tuple(ENVS), num_envs=(1, 16, 64, 256, 1024, 4096), impls=IMPLS, modes=("torch", "numpy"),
+            devices=None, seconds: float = 0.25, repeats: int = 5, max_sync_envs: int = 1024,
+            threads: int = 1, compiled: bool = True, log=print) -> list[dict]:
+    """Run the benchmark and return its records (module docstring)."""
+    if threads > 0:
+        torch.set_num_threads(threads)
+    if devices is None:
+        devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    records: list[dict] = []
+    for env in envs:
+        task, gid = ENVS[env]
+        anchors: dict[tuple[str, int], float] = {}
+        for impl in [i for i in impls if i != "ours"]:
+            for N in num_envs:
+                rec = {"env": env, "impl": impl, "mode": "numpy", "device": "cpu", "num_envs": N,
+                       "steps_per_s": None, "anchor_task": gid, "status": "ok"}
+                if impl == "gymnasium-sync" and N > max_sync_envs:
+                    rec["status"] = f"skipped (> --max-sync-envs {max_sync_envs})"
+                else:
+                    try:
+                        fn = _gymnasium if impl == "gymnasium-sync" else _envpool
+                        rec["steps_per_s"] = fn(gid, N, seconds, repeats)
+                        anchors[(impl, N)] = rec["steps_per_s"]
+                    except ImportError as e:
+                        rec["status"] = f"missing ({e.name or e})"
+                    except Exception as e:  # an anchor's failure is its result
+                        rec["status"] = f"failed: {type(e).__name__}: {e}"
+                records.append(rec)
+                log(f"{env} {impl} N={N}: {rec['steps_per_s'] or rec['status']}")
+        if "ours" not in impls:
+            continue
+        for device in devices:
+            for comp in (False, True) if compiled else (False,):
+                impl = "ours-compiled" if comp else "ours"
+                for mode in modes:
+                    for N in num_envs:
+                        sps = _ours(task, N, mode, device, seconds, repeats, comp)
+                        pairs = (("vs_gymnasium_sync", "gymnasium-sync"), ("vs_envpool", "envpool"))
+                        ratio = {k: sps / anchors[(a, N)] if (a, N) in anchors else None for k, a in pairs}
+                        records.append({"env": env, "impl": impl, "mode": mode, "device": device,
+                                        "num_envs": N, "steps_per_s": sps, "status": "ok", **ratio})
+                        log(f"{env} {impl} {mode} {device} N={N}: {sps:.3g}")
+    return records
+
+
+def run(args: argparse.Namespace) -> int:
+    records = measure(envs=args.envs, num_envs=args.num_envs, impls=args.impls, modes=args.modes,
+                      devices=args.device, seconds=args.seconds, repeats=args.repeats,
+                      max_sync_envs=args.max_sync_envs, threads=args.threads, compiled=not args.no_compile,
+                      log=lambda s: None)
+    print(f"env steps per second, torch {torch.__version__}, {torch.get_num_threads()} threads; "
+          "vs_* = ours / anchor at the same number of envs (same run)")
+    print_table(records, COLUMNS)
+    if args.json:
+        write_json(args.json, records)
+        print(f"wrote {args.json}")
+    return 0
