@@ -69,8 +69,9 @@ class SB3VecEnv(VecEnv):
             for i in ended:  # only the environments whose episode ended (SB3's API is a list of dicts)
                 infos[i] = {"terminal_observation": final[i],
                             "TimeLimit.truncated": bool(trunc[i] and not term[i])}
-            if "invalid" in info:
-                for i in np.flatnonzero(info["invalid"]):
+            bad = info["final_info"].get("invalid")
+            if bad is not None:
+                for i in np.flatnonzero(bad):
                     infos[i]["invalid"] = True
         return obs, rew.astype(np.float32, copy=False), dones, infos
 

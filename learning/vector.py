@@ -133,6 +133,7 @@ class TaskVectorEnv(gym.vector.VectorEnv):
         return v if self.output == "torch" else v.cpu().numpy()
 
     # ------------------------------------------------------------------------------------------ API
+    @torch.no_grad()
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict[str, Any] | None = None):
         N = self.num_envs
         mask = None if options is None else options.get("reset_mask")
@@ -144,6 +145,9 @@ class TaskVectorEnv(gym.vector.VectorEnv):
                 raise ValueError(f"TaskVectorEnv.reset: options['reset_mask'] must be a bool array of shape "
                                  f"({N},), got {getattr(mask, 'dtype', type(mask))} {tuple(np.shape(mask))}")
             which = which.to(self.device)
+            if not self._started and not bool(which.all()):
+                raise ValueError("TaskVectorEnv.reset: the first reset must reset every environment "
+                                 "(options['reset_mask'] is only for environments that have started)")
         if seed is not None:
             if isinstance(seed, (int, np.integer)):
                 if seed < 0:
@@ -173,6 +177,7 @@ class TaskVectorEnv(gym.vector.VectorEnv):
         self._started = True
         return self._out(self.task.observe(self._x)), {}
 
+    @torch.no_grad()
     def step(self, actions):
         if not self._started:
             raise RuntimeError("TaskVectorEnv: call reset() before step()")
@@ -180,6 +185,8 @@ class TaskVectorEnv(gym.vector.VectorEnv):
         if a.shape != (self.num_envs, self.task.m):
             raise ValueError(f"TaskVectorEnv.step: actions must have shape ({self.num_envs}, {self.task.m}), "
                              f"got {tuple(a.shape)}")
+        if a.is_floating_point() and a.dtype != self.dtype:
+            a = torch.where(torch.isfinite(a), a.clamp(-2.0, 2.0), a)  # a cast to float32 cannot make an inf
         a = a.to(device=self.device, dtype=self.dtype)
         mode = self.autoreset_mode
         if mode == AutoresetMode.DISABLED and bool(self._ended.any()):
@@ -205,16 +212,17 @@ class TaskVectorEnv(gym.vector.VectorEnv):
             if any_bad:
                 infos = {"invalid": self._out(invalid), "_invalid": self._out(invalid.clone())}
         else:
-            if bool(invalid.any()):
-                infos = {"invalid": self._out(invalid), "_invalid": self._out(invalid.clone())}
+            bad = {"invalid": self._out(invalid), "_invalid": self._out(invalid.clone())} \
+                if bool(invalid.any()) else {}
             if mode == AutoresetMode.SAME_STEP:
                 ended = term | trunc
-                if bool(ended.any()):
-                    final = {"final_obs": self._out(obs), "_final_obs": self._out(ended),
-                             "final_info": dict(infos), "_final_info": self._out(ended.clone())}
+                if bool(ended.any()):  # an invalid step is truncated, so its flags are in final_info
+                    infos = {"final_obs": self._out(obs), "_final_obs": self._out(ended),
+                             "final_info": bad, "_final_info": self._out(ended.clone())}
                     self._initial(ended)
                     obs = self.task.observe(self._x)
-                    infos = {**infos, **final}
+            else:
+                infos = bad
         self._ended = term | trunc
         return self._out(obs), self._out(r), self._out(term), self._out(trunc), infos
 

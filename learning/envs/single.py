@@ -90,6 +90,7 @@ class TaskEnv(gym.Env):
             raise RuntimeError("TaskEnv: call reset() first")
         return self._x[0].numpy().copy()
 
+    @torch.no_grad()
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         if seed is not None:
@@ -106,10 +107,13 @@ class TaskEnv(gym.Env):
     def _obs(self) -> np.ndarray:
         return self.task.observe(self._x)[0].numpy().astype(self.observation_space.dtype, copy=True)
 
+    @torch.no_grad()
     def step(self, action):
         if self._x is None:
             raise RuntimeError("TaskEnv: call reset() before step()")
-        a = torch.as_tensor(np.asarray(action, dtype=self.observation_space.dtype)).reshape(1, -1)
+        a = np.asarray(action, dtype=np.float64)
+        a = torch.as_tensor(np.where(np.isfinite(a), np.clip(a, -2.0, 2.0), a))  # a cast cannot make an inf
+        a = a.to(self.dtype).reshape(1, -1)
         if a.shape[-1] != self.task.m:
             raise ValueError(f"TaskEnv.step: action must have shape ({self.task.m},), got {np.shape(action)}")
         x1, _, r, term, invalid = self.task.transition(self._x, a, self._scale)

@@ -134,10 +134,9 @@ class Task:
         ones are clipped to ``[-1, 1]``.  A step whose reward is not finite (a state that blew up) is
         invalid too.  Returns ``(x_next, u, reward, terminated, invalid)``.
         """
-        # finite ⇔ v − v == 0 (inf − inf and nan are nan); one check per row through its sum
-        sa = action.sum(-1)
+        ok = torch.isfinite(action).all(-1)
         u = action.nan_to_num(0.0, 0.0, 0.0).clamp_(-1.0, 1.0).mul_(scale)
         x1 = self.step(x, u)
         r = self.reward(x, u, x1)
-        invalid = ((sa - sa) != 0) | ((r - r) != 0)
+        invalid = ~(ok & torch.isfinite(r))
         return x1, u, r, self.terminated(x1), invalid

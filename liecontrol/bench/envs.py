@@ -73,6 +73,8 @@ def _rate(step, N: int, seconds: float, repeats: int, device=None, warmup: int =
 def _ours(task: str, N: int, mode: str, device: str, seconds: float, repeats: int, compiled: bool) -> float:
     from learning import TaskVectorEnv
 
+    if compiled:  # every env compiles the same step code: start from an empty cache (recompile limit)
+        torch._dynamo.reset()
     env = TaskVectorEnv(task, N, device=device, output=mode, compile=compiled)
     env.reset(seed=0)
     g = torch.Generator().manual_seed(0)

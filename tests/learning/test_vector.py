@@ -155,10 +155,11 @@ def test_seeding_matches_sync_vector_env_convention_and_lists():
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device (none on this machine)")
+@pytest.mark.parametrize("compiled", [False, True])
 @pytest.mark.parametrize("name", sorted(TASKS))
-def test_cuda_matches_cpu(name):
+def test_cuda_matches_cpu(name, compiled):
     cpu = TaskVectorEnv(name, 64, dtype=torch.float64, output="torch")
-    gpu = TaskVectorEnv(name, 64, dtype=torch.float64, output="torch", device="cuda")
+    gpu = TaskVectorEnv(name, 64, dtype=torch.float64, output="torch", device="cuda", compile=compiled)
     cpu.reset(seed=0)
     gpu.reset(seed=0)
     g = torch.Generator().manual_seed(0)
@@ -169,3 +170,42 @@ def test_cuda_matches_cpu(name):
         assert og.device.type == "cuda"
         torch.testing.assert_close(og.cpu(), oc, rtol=0, atol=1e-9)
         assert torch.equal(tg.cpu(), tc) and torch.equal(trg.cpu(), trc)
+
+
+def test_huge_finite_actions_are_clipped_not_flagged_in_float32():
+    env = TaskVectorEnv("PendulumSwingUp", 2)
+    ref = TaskVectorEnv("PendulumSwingUp", 2)
+    env.reset(seed=0)
+    ref.reset(seed=0)
+    o, r, te, tr, info = env.step(np.array([[1e39], [-1e300]]))
+    o2, r2, *_ = ref.step(np.array([[1.0], [-1.0]], np.float32))
+    assert not tr.any() and "invalid" not in info
+    np.testing.assert_array_equal(o, o2)
+    o, r, te, tr, info = env.step(np.array([[np.inf], [0.0]]))
+    assert tr.tolist() == [True, False] and info["invalid"].tolist() == [True, False]
+
+
+def test_first_reset_with_a_partial_mask_is_refused():
+    env = TaskVectorEnv("PendulumSwingUp", 3)
+    with pytest.raises(ValueError, match="first reset"):
+        env.reset(options={"reset_mask": np.array([True, False, False])})
+
+
+def test_learnable_model_parameters_leave_no_graph_in_the_env():
+    from controllers.systems import Pendulum
+    from learning import PendulumSwingUp
+
+    length = torch.nn.Parameter(torch.tensor(2.0 / 3.0))
+    task = PendulumSwingUp(model=Pendulum(mass=0.75, length=length, gravity=10.0, dt=0.05))
+    env = TaskVectorEnv(task, 3, output="torch")
+    o, _ = env.reset(seed=0)
+    o, r, *_ = env.step(torch.zeros(3, 1))
+    assert not o.requires_grad and not r.requires_grad and not env.state.requires_grad
+
+
+def test_same_step_invalid_flags_are_in_final_info_like_sync_vector_env():
+    env = TaskVectorEnv("PendulumSwingUp", 2, autoreset_mode="same_step", dtype=torch.float64)
+    env.reset(seed=0)
+    o, r, te, tr, info = env.step(np.array([[np.nan], [0.0]]))
+    assert "invalid" not in info and info["final_info"]["invalid"].tolist() == [True, False]
+    assert info["_final_obs"].tolist() == [True, False]
