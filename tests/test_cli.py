@@ -5,8 +5,10 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from liecontrol import cli
+from torchlie import so3
 
 
 def test_help_lists_every_command(capsys):
@@ -62,3 +64,49 @@ def test_bench_lie_writes_records(tmp_path):
             assert r["speedup"] == pytest.approx(r["anchor_ms"] / r["ours_ms"])
         else:  # a missing or inapplicable anchor is reported, not a crash
             assert r["anchor_ms"] is None and r["anchor_status"]
+
+
+def test_bench_lie_log_rows_compare_like_with_like(tmp_path):
+    """log_quat: a quaternion on every side (so3 only); log_mat: a matrix on every side, pypose's time
+    including its own matrix -> quaternion conversion; every record says what each side was given."""
+    path = tmp_path / "lie.json"
+    assert cli.main(["bench", "lie", "--batch", "16", "--dtype", "float32", "--ops", "log", "log_quat",
+                     "log_mat", "--repeats", "1", "--no-compile", "--json", str(path)]) == 0
+    recs = json.loads(path.read_text())
+    ops = {(r["group"], r["op"]) for r in recs}
+    assert ops == {("so3", "log"), ("so3", "log_quat"), ("so3", "log_mat"),
+                   ("se3", "log"), ("se3", "log_mat")}  # torchlie has no quaternion form of SE(3)
+    for r in recs:
+        assert r["ours_input"] == ("quaternion" if r["op"] == "log_quat" else "matrix")
+        if r["anchor"] == "pypose" and r["anchor_status"] == "ok":
+            assert r["anchor_input"] == ("matrix (conversion timed)" if r["op"] == "log_mat"
+                                         else "quaternion LieTensor" if r["group"] == "so3"
+                                         else "(t, quaternion) LieTensor")
+        if r["anchor"] == "roma" and r["anchor_status"] == "ok":
+            assert r["anchor_input"] == ("quaternion" if r["op"] == "log_quat" else "matrix")
+
+
+def test_bench_lie_exp_rows_compute_the_same_thing(tmp_path):
+    """exp_quat / exp_mat: every library's timed call returns the same rotation in the same form
+    (quaternions up to sign and component order, matrices entry by entry)."""
+    from liecontrol.bench import lie as bl
+    from torchlie import quaternion
+
+    gen = torch.Generator().manual_seed(3)
+    x = bl._tangents("so3", 64, torch.float64, "cpu", gen)
+    X = so3.exp(x)
+    ours = bl._Ours("so3").fns(X, X, x, x, X)
+    q_ours = ours["exp_quat"][0](*ours["exp_quat"][1])
+    R_ours = ours["exp_mat"][0](*ours["exp_mat"][1])
+    assert torch.allclose(quaternion.to_matrix(q_ours), X, atol=1e-14) and torch.equal(R_ours, X)
+    for cls in (bl._Pypose, bl._Roma):
+        lib, why = bl._anchor(cls, "so3")
+        if lib is None:
+            continue
+        f = lib.fns(lib.from_matrix(X), lib.from_matrix(X), x, x, X)
+        plain = lambda t: torch.Tensor(t).as_subclass(torch.Tensor)  # noqa: E731 (pypose's LieTensor)
+        q = quaternion.from_xyzw(plain(f["exp_quat"][0](*f["exp_quat"][1])))
+        q = q * torch.sign((q * q_ours).sum(-1, keepdim=True))
+        assert torch.allclose(q, q_ours, atol=1e-12), cls.name
+        assert torch.allclose(plain(f["exp_mat"][0](*f["exp_mat"][1])), X, atol=1e-12), cls.name
+        assert lib.inputs("exp_mat").endswith("(conversion timed)" if cls is bl._Pypose else "matrix")

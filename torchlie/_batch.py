@@ -143,3 +143,17 @@ def series_switch(dtype: torch.dtype) -> float:
     """|θ| below which the 6- to 9-term series of so2/se2/quaternion are exact to ``dtype``'s resolution;
     above it the closed forms' autograd derivatives have only ~eps/θ absolute cancellation error."""
     return 0.05 if dtype == torch.float64 else 0.3 if dtype == torch.float32 else 0.5
+
+
+_is_wrapped = getattr(getattr(torch._C, "_functorch", None), "is_functorch_wrapped_tensor", None)
+
+
+def _plain(*tensors: torch.Tensor) -> bool:
+    """Whether out= kernels and in-place writes may build the result: no argument needs autograd and
+    none is wrapped by a torch.func transform (vmap, grad, jacrev); False where that cannot be told
+    (the query is private to torch, so its absence only disables the fast paths)."""
+    if _is_wrapped is None or torch.compiler.is_compiling():
+        return False
+    if torch.is_grad_enabled() and any(t.requires_grad for t in tensors):
+        return False
+    return not any(_is_wrapped(t) for t in tensors)

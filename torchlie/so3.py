@@ -15,6 +15,8 @@ from __future__ import annotations
 import torch
 
 from torchlie._batch import (
+    _is_wrapped,
+    _plain,
     batch_shape,
     broadcast_leading,
     check_same_device,
@@ -232,36 +234,148 @@ def _quat_from_entries(r: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
     return qw * sgn, qx * sgn, qy * sgn, qz * sgn
 
 
-def _log_from_quat(qw, qx, qy, qz) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """ω components of a quaternion with w ≥ 0: angle 2 atan2(|v|, w) ∈ [0, π] about v/|v|.
+# The logarithm goes through Shepperd's matrix K = 4 q qᵀ of the unit quaternion q = (w, x, y, z) of R,
+# which is linear in R: diagonal d_i = 4 q_i² (1 + tr R, 1 + r00 − r11 − r22, …), off-diagonal 4 w x =
+# r21 − r12, …, 4 x y = r01 + r10, ….  Row k of K is 4 q_k q, the quaternion up to the factor 4 q_k; the
+# row with the largest d_k (≥ 1, as the four sum to 4) is the quaternion scaled by 4 q_k ≥ 2 with no
+# division at all, and the log only needs q up to a positive scale and its sign (see _log_tail).
+# K's 16 entries are rows of one (16, N) tensor (structure of arrays), the rows of K in the order
+# (w, y, x, z) so that the two first-round matches of the largest-d_k tournament (w vs x, y vs z) are the
+# (2, 4, N) halves K[0:8] vs K[8:16].
+_K_ENTRIES = ("d0", "a21", "a02", "a10", "a02", "b10", "d2", "b21",
+              "a21", "d1", "b10", "b02", "a10", "b02", "b21", "d3")
+# each entry as (sign, index into the row-major r00 … r22); the d_i also get + 1
+_K_TERMS = {"d0": ((1, 0), (1, 4), (1, 8)), "d1": ((1, 0), (-1, 4), (-1, 8)),
+            "d2": ((-1, 0), (1, 4), (-1, 8)), "d3": ((-1, 0), (-1, 4), (1, 8)),
+            "a21": ((1, 7), (-1, 5)), "a02": ((1, 2), (-1, 6)), "a10": ((1, 3), (-1, 1)),
+            "b10": ((1, 3), (1, 1)), "b02": ((1, 2), (1, 6)), "b21": ((1, 7), (1, 5))}
+# flat positions of r00 … r22 in a flattened (*, 3, 3) rotation / (*, 4, 4) homogeneous matrix
+POS_SO3 = (0, 1, 2, 3, 4, 5, 6, 7, 8)
+POS_SE3 = (0, 1, 2, 4, 5, 6, 8, 9, 10)
+_K_COEF: dict = {}
 
-    Scale-invariant, so the quaternion need not be exactly unit.
+
+def _k_coef(width: int, pos: tuple[int, ...], extra: tuple[int, ...], dtype, device) -> torch.Tensor:
+    """``(16 + len(extra), width)`` matrix of ±1/0 mapping a flattened matrix to K's entries (less the 1
+    on the diagonal) followed by the entries at ``extra``; built once per dtype and device."""
+    key = (width, pos, extra, dtype, device)
+    C = _K_COEF.get(key)
+    if C is None:
+        with torch.inference_mode(False):  # a cached inference tensor could not be saved for backward
+            C = torch.zeros(16 + len(extra), width, dtype=torch.float64)
+            for i, name in enumerate(_K_ENTRIES):
+                for s, j in _K_TERMS[name]:
+                    C[i, pos[j]] = s
+            for i, j in enumerate(extra):
+                C[16 + i, j] = 1
+            C = _K_COEF[key] = C.to(dtype=dtype, device=device)
+    return C
+
+
+def _k_rows(Xf: torch.Tensor, pos: tuple[int, ...], extra: tuple[int, ...] = ()) -> torch.Tensor:
+    """K's 16 entries, then the entries ``extra`` of ``Xf`` ``(N, width)``, as rows of a ``(16 + e, N)``
+    tensor (see above).
+
+    On CPU one small matrix product with the ±1/0 coefficients does it (the same sums of two or three
+    entries as the elementwise form, up to their order), reading the matrices in their own layout:
+    several times cheaper than the transposing copy plus 14 additions it replaces (measured).  It is
+    only taken where float32 products are exact (``torch.get_float32_matmul_precision() ==
+    "highest"``; "high"/"medium" may round the inputs to bfloat16); elsewhere, on GPUs and under
+    ``torch.compile`` (where the elementwise form fuses into one kernel) the entries are computed
+    elementwise.
     """
-    n2 = qx * qx + qy * qy + qz * qz
-    small, big = _mask(n2 < (1e-10 if qw.dtype == torch.float64 else 1e-6), qw.dtype)
-    n = torch.sqrt(n2 + small)
-    ws = qw * small + big
-    # 2 atan2(n, w)/n, and its series 2/w (1 − n²/(3 w²)) for small n (w ≈ 1 there)
-    f = _blend(small, big, 2 / ws * (1 - n2 / (3 * ws * ws)), 2 * torch.atan2(n, qw) / n)
-    return f * qx, f * qy, f * qz
+    dt = Xf.dtype
+    if (Xf.device.type == "cpu" and not torch.compiler.is_compiling()
+            and (dt == torch.float64 or (dt == torch.float32
+                                         and torch.get_float32_matmul_precision() == "highest"))):
+        K = torch.mm(_k_coef(Xf.shape[-1], pos, extra, dt, Xf.device), Xf.t())
+        K[0:16:9].add_(1)  # d0, d1
+        K[6:16:9].add_(1)  # d2, d3
+        return K
+    e = Xf.unbind(-1)
+    r00, r01, r02, r10, r11, r12, r20, r21, r22 = (e[p] for p in pos)
+    a21, a02, a10 = r21 - r12, r02 - r20, r10 - r01
+    b10, b02, b21 = r10 + r01, r02 + r20, r21 + r12
+    d0, d1 = 1 + r00 + r11 + r22, 1 + r00 - r11 - r22
+    d2, d3 = 1 - r00 + r11 - r22, 1 - r00 - r11 + r22
+    return torch.stack((d0, a21, a02, a10, a02, b10, d2, b21,
+                        a21, d1, b10, b02, a10, b02, b21, d3, *(e[j] for j in extra)))
 
 
-def _log_entries(r: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    return _log_from_quat(*_quat_from_entries(r))
+def _shepperd_row(K: torch.Tensor) -> torch.Tensor:
+    """The row of K ``(16, N)`` with the largest diagonal entry: ``4 q_k (w, x, y, z)`` ``(4, N)``.
+
+    A two-round tournament, without Python branching: w vs x and y vs z, then the two winners, each
+    round a comparison of diagonal entries and one ``lerp`` with 0/1 weights (exact: PyTorch's lerp
+    returns ``end`` itself for weight 1), which is cheaper than any mask arithmetic or ``torch.where``
+    on CPU.  Only the selected row receives gradient.
+    """
+    N = K.shape[-1]
+    lo, hi = K[0:16:6][:2].detach(), K[9:16:6].detach()  # (d0, d2), (d1, d3)
+    c2 = _greater(hi, lo)
+    m = torch.maximum(lo, hi)
+    c = _greater(m[1], m[0])
+    K4 = K[:16].view(2, 2, 4, N)
+    q2 = torch.lerp(K4[0], K4[1], c2.unsqueeze(1))
+    return torch.lerp(q2[0], q2[1], c)
+
+
+def _greater(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a > b`` as 1.0/0.0 in their dtype: ``(a − b).gt_(0)``, several times cheaper on CPU than
+    ``(a > b).to(dtype)`` (measured), except where the in-place comparison has no vmap batching rule."""
+    if torch.compiler.is_compiling() or _is_wrapped is None or _is_wrapped(a) or _is_wrapped(b):
+        return (a > b).to(a.dtype)
+    return torch.sub(a, b).gt_(0)
+
+
+_TINY: dict = {}
+
+
+def _log_tail(q: torch.Tensor, out: torch.Tensor | None = None
+              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``(ω, a, |w|, n)`` for a quaternion ``q`` ``(4, N)`` of any scale and sign; ω ``(3, N)``, written
+    into ``out`` if given (an out= kernel: only for arguments without autograd, see :func:`_plain`).
+
+    With ``s = ±1`` the sign of w (+1 at w = +0), ``a = atan2(n, s w) = θ/2 ∈ [0, π/2]``, ``n = |(x, y,
+    z)|`` and ``ω = (2 s a/n) (x, y, z)``: the logarithm of s q (that of q).  Scale-invariant and accurate
+    to the dtype's resolution at every angle, π included; at exactly π (w = 0) the derivative is that of
+    the branch returned (s w rather than |w|, whose derivative vanishes at 0).  No series is needed near
+    θ = 0: ``atan2(n, |w|)/n`` is accurate for any n > 0 (and so is its autograd derivative, to absolute
+    ε), so n² is only kept away from 0 — at ``√tiny``, where 2a/n = 2/|w| to far below ε — and values
+    and gradients stay finite at θ = 0.
+    """
+    w, v = q[0], q[1:]
+    floor = _TINY.get(q.dtype)
+    if floor is None:
+        floor = _TINY[q.dtype] = torch.finfo(q.dtype).tiny ** 0.5
+    n = torch.addcmul(torch.addcmul(v[0] * v[0], v[1], v[1]), v[2], v[2]).clamp_min_(floor).sqrt_()
+    s = torch.copysign(w.new_ones(()), w)
+    aw = w * s
+    a = torch.atan2(n, aw)
+    f = (a / n).mul_(s).mul_(2)
+    return (v * f if out is None else torch.mul(v, f, out=out)), a, aw, n
 
 
 def _log(R: torch.Tensor) -> torch.Tensor:
-    return torch.stack(_log_entries(_soa(R.reshape(*R.shape[:-2], 9), 9)), -1
-                       ).reshape(*R.shape[:-2], 3)
+    q = _shepperd_row(_k_rows(R.reshape(-1, 9), POS_SO3))
+    if _plain(R):  # ω straight into the transposed view of the (N, 3) result
+        out = R.new_empty(q.shape[1], 3)
+        _log_tail(q, out.t())
+        return out.reshape(*R.shape[:-2], 3)
+    return _aos(_log_tail(q)[0]).reshape(*R.shape[:-2], 3)
+
+
+def _aos(rows: torch.Tensor) -> torch.Tensor:
+    """``(k, N)`` rows -> contiguous ``(N, k)``: a copy into the transposed view of a new tensor, about
+    twice as fast on CPU as ``torch.stack(rows, -1)`` or ``rows.t().contiguous()`` (measured)."""
+    out = rows.new_empty(rows.shape[1], rows.shape[0])
+    out.t().copy_(rows)
+    return out
 
 
 def _to_quaternion(R: torch.Tensor) -> torch.Tensor:
     q = torch.stack(_quat_from_entries(_soa(R.reshape(*R.shape[:-2], 9), 9)), -1).reshape(*R.shape[:-2], 4)
     return q / torch.linalg.vector_norm(q, dim=-1, keepdim=True)
-
-
-def _log_from_quaternion(q: torch.Tensor) -> torch.Tensor:
-    return torch.stack(_log_from_quat(*_soa(q, 4)), -1).reshape(*q.shape[:-1], 3)
 
 
 def log(R: torch.Tensor) -> torch.Tensor:
@@ -316,7 +430,16 @@ def compose(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
         return torch.matmul(R1, R2)
     # On CPU a batched matmul of 3×3 matrices costs ~60 ns a matrix whatever the dtype; row i of the
     # product as three multiply-adds of R2's rows is memory-bound, so cheaper in float32 (and not
-    # in float64, where reading the strided rows costs more than the matmul's arithmetic; measured)
+    # in float64, where reading the strided rows costs more than the matmul's arithmetic; measured).
+    if _plain(R1, R2):
+        # the rows accumulate in place in the output (out= kernels): no temporaries, no final copy;
+        # ~20 % faster than stacking the rows (measured), but out= supports neither autograd nor vmap
+        out = R1.new_empty(torch.broadcast_shapes(R1.shape, R2.shape))
+        for i in range(3):
+            o = out[..., i, :]
+            torch.mul(R1[..., i, 0:1], R2[..., 0, :], out=o)
+            o.addcmul_(R1[..., i, 1:2], R2[..., 1, :]).addcmul_(R1[..., i, 2:3], R2[..., 2, :])
+        return out
     return torch.stack([_row_times(R1, R2, i, 3) for i in range(3)], -2)
 
 

@@ -1,9 +1,28 @@
 """``liecontrol bench lie``: torchlie's group operations against pypose and roma, in one run.
 
-For every group (so3, se3), op (exp, log, compose, act, inverse, and the Jacobians Jr, Jl, Jr_inv,
-Jl_inv), dtype and batch size, each library is timed on its own native representation (pypose:
-quaternion LieTensors; roma and torchlie: rotation/homogeneous matrices) as the median of ``--repeats``
-runs after warm-up, and the ratio anchor/ours is reported.  pypose has a public Jacobian only for
+For every group (so3, se3), op (exp, exp_quat, exp_mat, log, log_quat, log_mat, compose, act, inverse, and
+the Jacobians Jr, Jl, Jr_inv, Jl_inv), dtype and batch size, each library is timed as the median of
+``--repeats`` runs after warm-up, and the ratio anchor/ours is reported.  Unless the op says otherwise
+each library works on its own native representation: pypose on quaternion LieTensors (``(x, y, z, w)``,
+se3 ``(t, q)``), roma and torchlie on rotation/homogeneous matrices; conversions happen outside the
+timed call.  The three logarithms differ only in what each side is given (the record's
+``ours_input``/``anchor_input``):
+
+* ``log``: each side its native form — torchlie and roma a matrix, pypose its quaternion.  Not like
+  with like: a matrix log has to extract the rotation's quaternion first, pypose's starts from it.
+* ``log_quat`` (so3 only): a unit quaternion on every side — ``torchlie.quaternion.log`` on ``(w, x, y,
+  z)``, pypose's ``Log`` on its native quaternion LieTensor, ``roma.unitquat_to_rotvec`` on ``(x, y, z,
+  w)``.
+* ``log_mat``: a matrix on every side — ``so3.log``/``se3.log`` as in ``log``, pypose's
+  ``mat2SO3(X).Log()``/``mat2SE3(X).Log()`` with its matrix-to-quaternion conversion inside the timed
+  call (``check=False``: no orthogonality test), roma as in ``log``.
+
+The exponentials likewise: ``exp`` returns each side's native form (torchlie and roma a matrix, pypose
+a quaternion: 9 numbers against 4 per rotation), ``exp_quat`` (so3 only) a quaternion on every side
+(``torchlie.quaternion.exp``, ``roma.rotvec_to_unitquat``) and ``exp_mat`` a matrix on every side
+(pypose's ``Exp().matrix()`` timed).
+
+pypose has a public Jacobian only for
 so(3) (``LieTensor.Jr``); the other Jacobian anchors are the functions its ``Jinvp`` is built on
 (``pypose.lietensor.operation.so3_Jl``/``so3_Jl_inv``/``se3_Jl``/``se3_Jl_inv``; J_r(x) = J_l(−x),
 with −x computed outside the timed call).  ``ours_compiled_ms`` is the same torchlie function under
@@ -21,11 +40,17 @@ import math
 import torch
 
 from liecontrol.report import print_table, restores_threads, time_ms, write_json
-from torchlie import se3, so3
+from torchlie import quaternion, se3, so3
 
 __all__ = ["add_arguments", "run", "measure"]
 
-OPS = ("exp", "log", "compose", "act", "inverse", "Jr", "Jl", "Jr_inv", "Jl_inv")
+OPS = ("exp", "exp_quat", "exp_mat", "log", "log_quat", "log_mat", "compose", "act", "inverse",
+       "Jr", "Jl", "Jr_inv", "Jl_inv")
+# what a library's timed call is given for the group element (see the module docstring); tangent-input
+# ops (exp, Jacobians) take ``(*, d)`` vectors on every side
+_MATRIX, _QUAT = "matrix", "quaternion"
+_PP_NATIVE = {"so3": "quaternion LieTensor", "se3": "(t, quaternion) LieTensor"}
+_MAT_CONVERTED = "matrix (conversion timed)"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -59,6 +84,14 @@ def _tangents(group: str, n: int, dtype, device, gen: torch.Generator, edges: bo
 
 # ------------------------------------------------------------------------------------------- libraries
 
+_TANGENT_OPS = ("exp", "exp_quat", "exp_mat", "Jr", "Jl", "Jr_inv", "Jl_inv")
+
+
+def _exp_io(op: str, output: str) -> str:
+    """What a tangent-input op is given, and for the exponentials what it returns."""
+    return f"tangent -> {output}" if op.startswith("exp") else "tangent"
+
+
 class _NotApplicable(Exception):
     """An anchor library has no counterpart of the group or op: reported as "n/a", not a failure."""
 
@@ -75,11 +108,17 @@ class _Ours:
     def to_matrix(self, X):
         return X
 
-    def fns(self, X, Y, x, p):
+    def inputs(self, op):
+        return _exp_io(op, _QUAT if op == "exp_quat" else _MATRIX) if op in _TANGENT_OPS else (
+            _QUAT if op == "log_quat" else _MATRIX)
+
+    def fns(self, X, Y, x, p, Xmat):
         m = self.m
-        return {
+        out = {
             "exp": (m.exp, (x,)),
+            "exp_mat": (m.exp, (x,)),
             "log": (m.log, (X,)),
+            "log_mat": (m.log, (X,)),
             "compose": (m.compose, (X, Y)),
             "act": (m.act, (X, p)),
             "inverse": (m.inverse, (X,)),
@@ -88,6 +127,10 @@ class _Ours:
             "Jr_inv": (m.right_jacobian_inv, (x,)),
             "Jl_inv": (m.left_jacobian_inv, (x,)),
         }
+        if m is so3:
+            out["log_quat"] = (quaternion.log, (quaternion.from_matrix(X),))
+            out["exp_quat"] = (quaternion.exp, (x,))
+        return out
 
     def roundtrip(self, X):
         return self.m.exp(self.m.log(X))
@@ -108,7 +151,12 @@ class _Pypose:
     def to_matrix(self, X):
         return X.matrix()
 
-    def fns(self, X, Y, x, p):
+    def inputs(self, op):
+        if op in _TANGENT_OPS:
+            return _exp_io(op, _MAT_CONVERTED if op == "exp_mat" else _PP_NATIVE[self.group])
+        return _MAT_CONVERTED if op == "log_mat" else _PP_NATIVE[self.group]
+
+    def fns(self, X, Y, x, p, Xmat):
         from pypose.lietensor import operation as op
 
         pp = self.pp
@@ -116,7 +164,11 @@ class _Pypose:
         jl, jl_inv = (op.so3_Jl, op.so3_Jl_inv) if self.group == "so3" else (op.se3_Jl, op.se3_Jl_inv)
         out = {
             "exp": (lambda a: a.Exp(), (xl,)),
+            "exp_quat": (lambda a: a.Exp(), (xl,)),
+            "exp_mat": (lambda a: a.Exp().matrix(), (xl,)),
             "log": (lambda a: a.Log(), (X,)),
+            "log_quat": (lambda a: a.Log(), (X,)),
+            "log_mat": (lambda m: self.from_matrix(m).Log(), (Xmat,)),
             "compose": (lambda a, b: a @ b, (X, Y)),
             "act": (lambda a, b: a.Act(b), (X, p)),
             "inverse": (lambda a: a.Inv(), (X,)),
@@ -149,11 +201,19 @@ class _Roma:
     def to_matrix(self, X):
         return X
 
-    def fns(self, X, Y, x, p):
+    def inputs(self, op):
+        return _exp_io(op, _QUAT if op == "exp_quat" else _MATRIX) if op in _TANGENT_OPS else (
+            _QUAT if op == "log_quat" else _MATRIX)
+
+    def fns(self, X, Y, x, p, Xmat):
         r = self.roma
         return {
             "exp": (r.rotvec_to_rotmat, (x,)),
+            "exp_quat": (r.rotvec_to_unitquat, (x,)),
+            "exp_mat": (r.rotvec_to_rotmat, (x,)),
             "log": (r.rotmat_to_rotvec, (X,)),
+            "log_quat": (r.unitquat_to_rotvec, (quaternion.to_xyzw(quaternion.from_matrix(X)),)),
+            "log_mat": (r.rotmat_to_rotvec, (X,)),
             "compose": (lambda a, b: r.rotmat_composition((a, b)), (X, Y)),
             "act": (lambda a, b: (a @ b.unsqueeze(-1)).squeeze(-1), (X, p)),
             "inverse": (r.rotmat_inverse, (X,)),
@@ -212,8 +272,10 @@ def measure(groups=("so3", "se3"), ops=OPS, dtypes=("float32", "float64"), batch
                     Y = ours.m.exp(_tangents(group, batch, dtype, device, gen))
                     p = torch.randn(batch, 3, generator=gen, dtype=torch.float64).to(dtype=dtype,
                                                                                      device=device)
-                    our_fns = ours.fns(X, Y, x, p)
+                    our_fns = ours.fns(X, Y, x, p, X)
                     for op in ops:
+                        if op not in our_fns:  # log_quat: torchlie has no quaternion form of SE(3)
+                            continue
                         fn, args = our_fns[op]
                         ours_ms = time_ms(lambda fn=fn, args=args: fn(*args), repeats=repeats, device=device,
                                           min_time_s=0.002)
@@ -233,14 +295,15 @@ def measure(groups=("so3", "se3"), ops=OPS, dtypes=("float32", "float64"), batch
                                    "roundtrip_err": err["torchlie"][0],
                                    "roundtrip_err_edges": err["torchlie"][1],
                                    "anchor_roundtrip_err": None, "anchor_roundtrip_err_edges": None,
-                                   "anchor_status": "ok"}
+                                   "anchor_status": "ok", "ours_input": ours.inputs(op),
+                                   "anchor_input": lib.inputs(op) if lib is not None else None}
                             if lib is None:
                                 rec["anchor_status"] = why
                                 records.append(rec)
                                 continue
                             rec["anchor_roundtrip_err"], rec["anchor_roundtrip_err_edges"] = err[cls.name]
                             try:
-                                afns = lib.fns(lib.from_matrix(X), lib.from_matrix(Y), x, p)
+                                afns = lib.fns(lib.from_matrix(X), lib.from_matrix(Y), x, p, X)
                             except Exception as e:
                                 rec["anchor_status"] = f"failed: {type(e).__name__}: {e}"
                                 records.append(rec)
@@ -273,7 +336,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; times in ms (median of "
           f"{args.repeats}); speedup = anchor_ms / ours_ms")
     cols = ["group", "op", "dtype", "batch", "ours_ms", "ours_compiled_ms", "anchor", "anchor_ms", "speedup",
-            "speedup_compiled", "anchor_status"]
+            "speedup_compiled", "anchor_status", "ours_input", "anchor_input"]
     print_table(records, cols)
     print()
     print("round-trip error max|exp(log X) - X| (uniform angles in [0, pi) / within 1e-9..1e-3 of 0 and pi):")

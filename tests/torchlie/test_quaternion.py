@@ -301,3 +301,55 @@ def test_device_follows_input_and_mismatch_is_rejected():
         Q.act(torch.zeros(4), torch.zeros(3, device=m))
     with pytest.raises(ValueError, match="'p' and 't' are on different devices"):
         Q.slerp(torch.zeros(4), torch.zeros(4), torch.tensor(0.5, device=m))
+
+
+# ---------------------------------------------------------------------------------------------- log vs mpmath
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_log_and_its_derivative_against_mpmath_at_every_angle(dtype):
+    """log(±c q) = θ u for q = (cos θ/2, sin θ/2 u) (60-digit reference), and its derivative along the
+    group — d/dε log(q ⊗ exp(ε δ)) = J_r(ω)⁻¹ δ, the closed form in mpmath — at angles 0 … π, without
+    the small-angle series it used to have; finite and one-sided (the branch returned) at exactly π."""
+    mp = pytest.importorskip("mpmath")
+    mp.mp.dps = 60
+    eps = torch.finfo(dtype).eps
+
+    def hat(w):
+        return mp.matrix([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+
+    def jr_inv(w):
+        w = [mp.mpf(float(c)) for c in w]
+        th = mp.sqrt(sum(c * c for c in w))
+        d = mp.mpf(1) / 12 if th == 0 else 1 / th**2 - (1 + mp.cos(th)) / (2 * th * mp.sin(th))
+        W = hat(w)
+        J = mp.eye(3) + W / 2 + d * W * W
+        return torch.tensor([[float(J[i, j]) for j in range(3)] for i in range(3)], dtype=F64)
+
+    half = torch.cat((torch.zeros(3, 1, dtype=F64), 0.5 * torch.eye(3, dtype=F64)), -1)  # (0, δ/2)
+    angles = [0.0, 1e-12, 1e-9, 1e-6, 1e-3, 0.05, 0.3, 1.0, 2.0, 3.0, math.pi - 1e-6, math.pi - 1e-9]
+    for axis in ((0.6, -0.48, 0.64), (0.0, 0.0, 1.0), (-2.0, 1.0, 2.0)):
+        u = [mp.mpf(c) for c in axis]
+        nu = mp.sqrt(sum(c * c for c in u))
+        u = [c / nu for c in u]
+        for theta in angles:
+            th = mp.mpf(theta)
+            qm = [mp.cos(th / 2)] + [mp.sin(th / 2) * c for c in u]
+            ref = torch.tensor([float(th * c) for c in u], dtype=F64)
+            for scale in (1.0, -1.0, 2.5, -0.1):
+                q = torch.tensor([float(scale * c) for c in qm], dtype=dtype)
+                w = Q.log(q)
+                assert w.dtype == dtype
+                assert (w.double() - ref).abs().max() <= 4 * eps * math.pi, (theta, scale)
+                J = torch.autograd.functional.jacobian(Q.log, q).double()  # (3, 4)
+                G = torch.stack([J @ Q.multiply(q.double(), half[k]) for k in range(3)], -1)
+                tol = 2e-6 if dtype == torch.float32 else 4e-15
+                assert (G - jr_inv(w)).abs().max() <= tol, (theta, scale)
+    # exactly π: w = ±0 picks the branch (both are logarithms), the derivative is that branch's
+    for w0 in (0.0, -0.0):
+        q = torch.tensor([w0, 0.6, -0.48, 0.64], dtype=dtype)
+        w = Q.log(q)
+        sign = math.copysign(1.0, w0)
+        assert (w.double() - sign * math.pi * torch.tensor([0.6, -0.48, 0.64], dtype=F64)).abs().max() < 4e-7
+        J = torch.autograd.functional.jacobian(Q.log, q).double()
+        assert torch.isfinite(J).all()
+        G = torch.stack([J @ Q.multiply(q.double(), half[k]) for k in range(3)], -1)
+        assert (G - jr_inv(w)).abs().max() < 1e-6

@@ -442,3 +442,182 @@ def test_nan_stays_in_its_element():
 def test_angles_near_edges_cover_zero_and_pi():
     a = angles_near_edges(F64)
     assert (a == 0).any() and (a == math.pi).any()
+
+
+# ---------------------------------------------------------------------------------------------- log vs mpmath
+# so3.log / se3.log against 60-digit references at and near the edges, in both dtypes, values and the
+# derivative along the group (d/dε log(X exp(ε δ)) = J_r⁻¹ δ, a textbook closed form evaluated in mpmath)
+
+LOG_ANGLES = [0.0, 1e-12, 1e-9, 1e-6, 1e-3, 0.0999, 0.1001, 0.3162, 0.3163, 1.0, 2.0, 3.0,
+              math.pi - 1e-6, math.pi - 1e-9, math.pi]
+LOG_AXES = [(0.6, -0.48, 0.64), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -0.6, 0.8), (-2.0, 1.0, 2.0)]
+
+
+def _mp():
+    mpmath = pytest.importorskip("mpmath")
+    mpmath.mp.dps = 60
+    return mpmath
+
+
+def _mp_hat(mp, w):
+    return mp.matrix([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+
+
+def _mp_rotation(mp, axis, theta):
+    """R = I + sin θ û + (1 − cos θ) û² and ω = θ u, in mpmath."""
+    u = [mp.mpf(c) for c in axis]
+    nu = mp.sqrt(sum(c * c for c in u))
+    u = [c / nu for c in u]
+    th = mp.mpf(theta)
+    U = _mp_hat(mp, u)
+    return mp.eye(3) + mp.sin(th) * U + (1 - mp.cos(th)) * U * U, [th * c for c in u]
+
+
+def _mp_jr_inv(mp, w):
+    """J_r(ω)⁻¹ = I + ½ ω̂ + (1/θ² − (1 + cos θ)/(2 θ sin θ)) ω̂²  (Solà Eq. 146 with ω → −ω)."""
+    w = [mp.mpf(float(c)) for c in w]
+    th = mp.sqrt(sum(c * c for c in w))
+    d = mp.mpf(1) / 12 if th == 0 else 1 / th**2 - (1 + mp.cos(th)) / (2 * th * mp.sin(th))
+    W = _mp_hat(mp, w)
+    return mp.eye(3) + W / 2 + d * W * W
+
+
+def _to_torch(mp_mat, rows, cols, dtype=F64):
+    return torch.tensor([[float(mp_mat[i, j]) for j in range(cols)] for i in range(rows)], dtype=dtype)
+
+
+def _along_group(f, X, hat):
+    """d/dε f(X exp(ε E_k)) at ε = 0 for the generators E_k = hat(e_k), from f's autograd Jacobian."""
+    J = torch.autograd.functional.jacobian(f, X).double()
+    n = J.dim() - X.dim()
+    d = 3 if X.shape[-1] == 3 else 6
+    cols = [torch.tensordot(J, X.double() @ hat(torch.eye(d, dtype=F64)[k]), dims=X.dim()) for k in range(d)]
+    assert n == 1
+    return torch.stack(cols, -1)
+
+
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_so3_log_and_its_derivative_against_mpmath_at_every_angle(dtype):
+    mp = _mp()
+    eps = torch.finfo(dtype).eps
+    for axis in LOG_AXES:
+        for theta in LOG_ANGLES:
+            Rm, wm = _mp_rotation(mp, axis, theta)
+            R = _to_torch(Rm, 3, 3, dtype)
+            w = so3.log(R)
+            assert w.dtype == dtype and torch.isfinite(w).all()
+            ref = torch.tensor([float(c) for c in wm], dtype=F64)
+            err = (w.double() - ref).abs().max().item()
+            if math.pi - theta < 10 * eps:  # rounds to (or is) angle π: ±ω are both logarithms
+                err = min(err, (w.double() + ref).abs().max().item())
+            assert err <= 4 * eps * math.pi, (dtype, axis, theta, err)
+            # derivative along the group: J_r⁻¹ of the logarithm returned (finite at 0 and π too)
+            G = _along_group(so3.log, R, so3.hat)
+            Jref = _to_torch(_mp_jr_inv(mp, w), 3, 3)
+            gerr = (G - Jref).abs().max().item()
+            assert gerr <= (2e-6 if dtype == F32 else 4e-15), (dtype, axis, theta, gerr)
+
+
+def test_so3_log_exactly_at_pi_with_a_zero_quaternion_scalar():
+    """At angle exactly π (w = ±0 for every Shepperd row) the value is ±π u and the derivative is the
+    one-sided J_r⁻¹ of the branch returned — not the average of both sides that |w| would give."""
+    mp = _mp()
+    for diag in ((1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0)):
+        for dtype in (F64, F32):
+            R = torch.diag(torch.tensor(diag, dtype=dtype))
+            w = so3.log(R)
+            assert (w.abs().double() - math.pi * (torch.tensor(diag) > 0).double()).abs().max() < 4e-7
+            G = _along_group(so3.log, R, so3.hat)
+            assert (G - _to_torch(_mp_jr_inv(mp, w), 3, 3)).abs().max() < 1e-6
+
+
+def _mp_se3_log_v(mp, w, t):
+    """v = J_l(ω)⁻¹ t = t − ½ ω×t + d ω×(ω×t), d = 1/θ² − (1 + cos θ)/(2 θ sin θ)  (Solà Eq. 146)."""
+    w = [mp.mpf(float(c)) for c in w]
+    t = mp.matrix([mp.mpf(float(c)) for c in t])
+    th = mp.sqrt(sum(c * c for c in w))
+    d = mp.mpf(1) / 12 if th == 0 else 1 / th**2 - (1 + mp.cos(th)) / (2 * th * mp.sin(th))
+    W = _mp_hat(mp, w)
+    return (mp.eye(3) - W / 2 + d * W * W) * t
+
+
+def _mp_se3_jr_inv(mp, xi):
+    """SE(3) J_r(ξ)⁻¹ = [[J⁻¹, −J⁻¹ Q J⁻¹], [0, J⁻¹]], J = J_r(ω), Q = Q(−v, −ω) (Solà Eq. 179-180)."""
+    v, w = [-mp.mpf(float(c)) for c in xi[:3]], [-mp.mpf(float(c)) for c in xi[3:]]
+    th = mp.sqrt(sum(c * c for c in w))
+    if th == 0:
+        k1, k2, k3 = mp.mpf(1) / 6, -mp.mpf(1) / 24, mp.mpf(1) / 120
+    else:
+        k1 = (th - mp.sin(th)) / th**3
+        k2 = (1 - th**2 / 2 - mp.cos(th)) / th**4
+        k3 = (th - mp.sin(th) - th**3 / 6) / th**5
+    V, W = _mp_hat(mp, v), _mp_hat(mp, w)
+    Q = (V / 2 + k1 * (W * V + V * W + W * V * W) - k2 * (W * W * V + V * W * W - 3 * W * V * W)
+         - (k2 - 3 * k3) / 2 * (W * V * W * W + W * W * V * W))
+    Ji = _mp_jr_inv(mp, xi[3:])
+    J = mp.zeros(6, 6)
+    top = -Ji * Q * Ji
+    for i in range(3):
+        for j in range(3):
+            J[i, j] = J[i + 3, j + 3] = Ji[i, j]
+            J[i, j + 3] = top[i, j]
+    return J
+
+
+@pytest.mark.parametrize("dtype", [F64, F32])
+def test_se3_log_against_mpmath_and_its_derivative_at_every_angle(dtype):
+    """Including both sides of the series switch of d (θ² = 0.01 in float64, 0.1 in float32)."""
+    mp = _mp()
+    eps = torch.finfo(dtype).eps
+    t = torch.tensor([0.3, -1.0, 2.0], dtype=F64)
+    for axis in LOG_AXES[:3]:
+        for theta in LOG_ANGLES:
+            Rm, wm = _mp_rotation(mp, axis, theta)
+            X = torch.eye(4, dtype=F64)
+            X[:3, :3], X[:3, 3] = _to_torch(Rm, 3, 3), t
+            X = X.to(dtype)
+            xi = se3.log(X)
+            assert xi.dtype == dtype and torch.isfinite(xi).all()
+            w = xi[3:].double()
+            ref_w = torch.tensor([float(c) for c in wm], dtype=F64)
+            if math.pi - theta < 10 * eps and (w + ref_w).abs().max() < (w - ref_w).abs().max():
+                ref_w = -ref_w
+            assert (w - ref_w).abs().max() <= 4 * eps * math.pi, (dtype, axis, theta)
+            # v for the ω returned and the translation as stored: the closed form in 40 digits
+            v_ref = torch.tensor([float(c) for c in _mp_se3_log_v(mp, xi[3:], X[:3, 3])], dtype=F64)
+            assert (xi[:3].double() - v_ref).abs().max() <= 16 * eps, (dtype, axis, theta)
+            G = _along_group(se3.log, X, se3.hat)
+            Jref = _to_torch(_mp_se3_jr_inv(mp, xi), 6, 6)
+            gerr = (G - Jref).abs().max().item()
+            assert gerr <= (4e-6 if dtype == F32 else 8e-15), (dtype, axis, theta, gerr)
+
+
+def test_log_paths_agree():
+    """The fast paths (no autograd: written straight into the output; CPU matrix product for K) and the
+    general ones (autograd, vmap, the elementwise K used on GPUs and when float32 matmuls may round)
+    compute one function."""
+    g = torch.Generator().manual_seed(9)
+    for dtype in (F64, F32):
+        w = rotation_vectors(200, g, dtype)
+        R = so3.exp(w)
+        X = se3.exp(torch.cat((torch.randn(w.shape[0], 3, generator=g, dtype=F64).to(dtype), w), -1))
+        for mod, Y in ((so3, R), (se3, X)):
+            plain = mod.log(Y)
+            assert torch.equal(plain, mod.log(Y.clone().requires_grad_()).detach())
+            assert plain.is_contiguous()
+            tol = 4 * torch.finfo(dtype).eps * (4 if mod is so3 else 16)  # summation order differs
+            assert (torch.func.vmap(mod.log)(Y) - plain).abs().max() <= tol
+            old = torch.get_float32_matmul_precision()
+            try:
+                torch.set_float32_matmul_precision("medium")  # float32: K elementwise
+                assert (mod.log(Y) - plain).abs().max() <= tol
+            finally:
+                torch.set_float32_matmul_precision(old)
+    # so3.compose in float32 (rows accumulated in the output without autograd) is the stacked-rows path
+    A, B = so3.random(50, generator=g), so3.random(50, generator=g)
+    assert torch.equal(so3.compose(A, B), so3.compose(A.clone().requires_grad_(), B).detach())
+    assert torch.equal(so3.compose(A[:1], B), so3.compose(A[:1].expand_as(B), B))
+    assert (so3.compose(A, B).double() - A.double() @ B.double()).abs().max() < 1e-6
+    # se3.inverse in float64 (−tᵀR as a batched matmul) against the matrix inverse
+    X = se3.random(50, generator=g, dtype=F64)
+    assert (se3.inverse(X) - torch.linalg.inv(X)).abs().max() < 1e-14
