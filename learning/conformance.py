@@ -13,7 +13,9 @@ check any vector env with ``Box`` spaces, not only :class:`learning.vector.TaskV
 * **autoreset semantics** of the env's mode, compared output by output with gymnasium's own
   ``SyncVectorEnv`` over the single env (when ``make_single`` is given: this is also the
   **equivalence to the single env**, environment ``i`` seeded with ``seed + i``), through several
-  episode ends; for ``DISABLED``, that stepping an ended environment is refused and
+  episode ends, a mid-run reset with a list of per-environment seeds (some None), non-finite actions in
+  single environments, and every info key the reference returns (masks and nested ``final_info``);
+  for ``DISABLED``, that stepping an ended environment is refused and
   ``reset(options={"reset_mask": …})`` resets exactly the masked ones.
 """
 
@@ -120,17 +122,31 @@ def check_determinism(make: Callable[[], gym.vector.VectorEnv], seed: int = 0, s
 
 
 def _info_equal(a: dict, b: dict, tol: float, where: str) -> None:
-    for key in ("final_obs",):
-        if key in b:
-            assert key in a and "_" + key in a, f"{where}: infos lack {key!r} where the reference has it"
-            mask = np.asarray(b["_" + key])
-            assert np.array_equal(_np(a["_" + key]), mask), f"{where}: infos['_{key}'] differs"
-            ref = np.stack([b[key][i] for i in np.flatnonzero(mask)]) if mask.any() else None
-            if ref is not None:
-                got = _np(a[key])[mask]
-                assert np.allclose(got, ref, rtol=0, atol=tol), f"{where}: infos['{key}'] differs"
-        else:
-            assert key not in a or not np.any(_np(a.get("_" + key, False))), f"{where}: unexpected {key!r}"
+    """Every key of the reference's infos (gymnasium's layout: ``key`` and its mask ``_key``, nested
+    dicts such as ``final_info`` compared recursively) has the same masked values in ours."""
+    for key, ref_val in b.items():
+        if key.startswith("_"):
+            continue
+        assert key in a, f"{where}: infos lack {key!r} where the reference has it"
+        mask = np.asarray(b.get("_" + key, True))
+        if "_" + key in b:
+            assert "_" + key in a and np.array_equal(_np(a["_" + key]), mask), \
+                f"{where}: infos['_{key}'] differs"
+        if isinstance(ref_val, dict):
+            assert isinstance(a[key], dict), f"{where}: infos[{key!r}] is not a dict"
+            _info_equal(a[key], ref_val, tol, f"{where}: {key}")
+            continue
+        idx = np.flatnonzero(np.broadcast_to(mask, (len(ref_val),)))
+        if not len(idx):
+            continue
+        ref = np.stack([np.asarray(ref_val[i]) for i in idx])
+        got = np.stack([np.asarray(_np(a[key])[i]) for i in idx])
+        ok = (np.array_equal(got, ref) if ref.dtype.kind in "bOiuU"
+              else np.allclose(got.astype(float), ref.astype(float), rtol=0, atol=tol, equal_nan=True))
+        assert ok, f"{where}: infos[{key!r}] differs"
+    for key in a:
+        if not key.startswith("_") and key not in b and "_" + key in a:
+            assert not np.any(_np(a["_" + key])), f"{where}: unexpected infos[{key!r}]"
 
 
 def check_against_sync(make: Callable[[AutoresetMode], gym.vector.VectorEnv],
@@ -144,10 +160,20 @@ def check_against_sync(make: Callable[[AutoresetMode], gym.vector.VectorEnv],
     assert np.allclose(_np(o1), o2, rtol=0, atol=tol), "reset observations differ from the reference"
     ended = np.zeros(ours.num_envs, bool)
     n_end = 0
+    N = ours.num_envs
     for k, a in enumerate(_actions(ours, steps, seed)):
+        if k == steps // 2:  # a reset with per-environment seeds (a list, None for some) mid-run
+            seeds = [None if i % 3 == 1 else seed + 100 + 7 * i for i in range(N)]
+            o1, _ = ours.reset(seed=seeds)
+            o2, _ = ref.reset(seed=seeds)
+            assert np.allclose(_np(o1), o2, rtol=0, atol=tol), "list-seeded reset observations differ"
+            ended[:] = False
         if mode == AutoresetMode.DISABLED and ended.any():
             ours.reset(options={"reset_mask": ended.copy()})
             ref.reset(options={"reset_mask": ended.copy()})
+        if k % 7 == 3 and np.issubdtype(a.dtype, np.floating):  # a non-finite action in one env
+            a = a.copy()
+            a[k % N].flat[0] = np.nan
         out1 = ours.step(a)
         out2 = ref.step(a)
         where = f"{mode.name} step {k}"

@@ -6,8 +6,11 @@ conventions: ``dones = terminated | truncated``, and for every environment whose
 dict carries ``"terminal_observation"`` (the last observation of the ended episode; the returned
 observation is already the first of the next one) and ``"TimeLimit.truncated"`` (truncated and not
 terminated) — without them PPO/SAC bootstrap wrongly at time limits.  An invalid step (non-finite action)
-adds ``"invalid": True``.  Works with PPO, SAC, ``VecMonitor``, ``VecNormalize`` and
-``evaluate_policy``.  Seeds set by ``VecEnv.seed(s)`` give environment ``i`` the seed ``s + i``.
+adds ``"invalid": True``; the env truncates such an episode, so it also carries
+``"TimeLimit.truncated": True`` — SB3 then bootstraps from the last valid observation, as it would at a
+time limit (filter on ``"invalid"`` to treat it otherwise).  Works with PPO, SAC, ``VecMonitor``,
+``VecNormalize`` and ``evaluate_policy``.  Seeds set by ``VecEnv.seed(s)`` give environment ``i`` the
+seed ``s + i``.
 """
 
 from __future__ import annotations

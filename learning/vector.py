@@ -26,6 +26,7 @@ Python loop over environments anywhere (not in step, not in autoreset, not in se
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import gymnasium as gym
@@ -77,16 +78,21 @@ class TaskVectorEnv(gym.vector.VectorEnv):
                  dtype=torch.float32, output: str = "numpy", render_mode: str | None = None,
                  compile: bool = False):
         self.task = make_task(task, task_kwargs)
-        if not isinstance(num_envs, int) or num_envs < 1:
+        if isinstance(num_envs, np.integer):
+            num_envs = int(num_envs)
+        if not isinstance(num_envs, int) or isinstance(num_envs, bool) or num_envs < 1:
             raise ValueError(f"TaskVectorEnv: argument 'num_envs' must be a positive int, got {num_envs!r}")
         if output not in ("numpy", "torch"):
             raise ValueError(f"TaskVectorEnv: argument 'output' must be 'numpy' or 'torch', got {output!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"TaskVectorEnv: render_mode must be None or 'rgb_array', got {render_mode!r}")
         steps = self.task.max_episode_steps if max_episode_steps is None else max_episode_steps
-        if not isinstance(steps, int) or steps < 1:
+        if not isinstance(steps, int) or isinstance(steps, bool) or steps < 1:
             raise ValueError(f"TaskVectorEnv: argument 'max_episode_steps' must be a positive int, "
                              f"got {steps!r}")
+        if steps != self.task.max_episode_steps:
+            # the observation bounds are proven for the task's horizon: a longer one needs the task's
+            self.task = dataclasses.replace(self.task, max_episode_steps=steps)
         self.num_envs, self.max_episode_steps, self.output = num_envs, steps, output
         self.device, self.dtype = torch.device(device), as_dtype(dtype)
         self.autoreset_mode = autoreset_mode_ = as_autoreset_mode(autoreset_mode)
@@ -145,10 +151,16 @@ class TaskVectorEnv(gym.vector.VectorEnv):
                 raise ValueError(f"TaskVectorEnv.reset: options['reset_mask'] must be a bool array of shape "
                                  f"({N},), got {getattr(mask, 'dtype', type(mask))} {tuple(np.shape(mask))}")
             which = which.to(self.device)
+            if not bool(which.any()):
+                raise ValueError("TaskVectorEnv.reset: options['reset_mask'] must select at least one "
+                                 "environment (as SyncVectorEnv requires)")
             if not self._started and not bool(which.all()):
                 raise ValueError("TaskVectorEnv.reset: the first reset must reset every environment "
                                  "(options['reset_mask'] is only for environments that have started)")
         if seed is not None:
+            if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer, list, tuple)):
+                raise ValueError(f"TaskVectorEnv.reset: argument 'seed' must be an int or a list of {N} "
+                                 f"non-negative ints or None, got {seed!r}")
             if isinstance(seed, (int, np.integer)):
                 if seed < 0:
                     raise ValueError(f"TaskVectorEnv.reset: argument 'seed' must be >= 0, got {seed}")
@@ -157,7 +169,8 @@ class TaskVectorEnv(gym.vector.VectorEnv):
                 given = torch.ones(N, dtype=torch.bool)
             else:
                 seed = list(seed)
-                if len(seed) != N or any(s is not None and (not isinstance(s, (int, np.integer)) or s < 0)
+                if len(seed) != N or any(s is not None and (not isinstance(s, (int, np.integer))
+                                                            or isinstance(s, (bool, np.bool_)) or s < 0)
                                          for s in seed):
                     raise ValueError(f"TaskVectorEnv.reset: argument 'seed' must be an int or a list of {N} "
                                      f"non-negative ints or None, got {seed!r}")

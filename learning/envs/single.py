@@ -9,7 +9,10 @@ episode, to this env reset with ``seed=s + i`` (the conformance tests check it t
 
 Time limits are gymnasium's: :func:`gymnasium.make` wraps the env in ``TimeLimit`` from the registered
 ``max_episode_steps``; the env itself truncates only an *invalid* step (a non-finite action or state,
-flagged ``info["invalid"] = True``).  Actions outside ``[-1, 1]`` are clipped (see :mod:`learning.envs.task`).
+flagged ``info["invalid"] = True``).  The observation bounds are proven for the task's own horizon: for
+longer episodes pass ``task_kwargs={"max_episode_steps": K}`` as well as ``max_episode_steps=K`` (a
+``TimeLimit`` alone cannot tell the task; :class:`learning.vector.TaskVectorEnv` does this itself).
+Actions outside ``[-1, 1]`` are clipped (see :mod:`learning.envs.task`).
 """
 
 from __future__ import annotations
@@ -92,6 +95,9 @@ class TaskEnv(gym.Env):
 
     @torch.no_grad()
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        if isinstance(seed, (bool, np.bool_)):
+            raise ValueError(f"TaskEnv.reset: argument 'seed' must be a non-negative int or None, "
+                             f"got {seed!r}")
         super().reset(seed=seed)
         if seed is not None:
             self._key, self._episode = keys_of_seeds(torch.tensor([int(seed) % 2**62])), 0

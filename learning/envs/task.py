@@ -30,12 +30,12 @@ def angle_wrap(a: Tensor) -> Tensor:
 
 def hi(v) -> float:
     """Largest value of a float or tensor model parameter (for bounds)."""
-    return float(torch.as_tensor(v).max())
+    return float(torch.as_tensor(v).detach().to(torch.float64).max())
 
 
 def lo(v) -> float:
     """Smallest value of a float or tensor model parameter (for bounds)."""
-    return float(torch.as_tensor(v).min())
+    return float(torch.as_tensor(v).detach().to(torch.float64).min())
 
 
 def terminal_weighted(q_diag: Tensor, horizon: int, factor: float = 10.0) -> Tensor:

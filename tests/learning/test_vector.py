@@ -9,7 +9,7 @@ import torch
 from gymnasium.vector import AutoresetMode
 
 import learning
-from learning import TASKS, TaskVectorEnv
+from learning import TASKS, TaskEnv, TaskVectorEnv
 from learning.conformance import check_against_sync, check_fresh_buffers, check_vector_env
 
 learning.register_envs()
@@ -95,6 +95,23 @@ class _NoZeroRewardEnv(TaskVectorEnv):
         return o, r, te, tr, info
 
 
+class _NoInvalidInfoEnv(TaskVectorEnv):
+    """Broken on purpose: drops the flag of a non-finite action from the infos."""
+
+    def step(self, actions):
+        o, r, te, tr, info = super().step(actions)
+        info.pop("invalid", None)
+        info.pop("_invalid", None)
+        return o, r, te, tr, info
+
+
+class _ListSeedEnv(TaskVectorEnv):
+    """Broken on purpose: a list of seeds is applied in reverse order."""
+
+    def reset(self, *, seed=None, options=None):
+        return super().reset(seed=seed[::-1] if isinstance(seed, list) else seed, options=options)
+
+
 def test_the_suite_catches_broken_envs():
     single = lambda: gym.make(learning.env_id("PendulumSwingUp"), max_episode_steps=13, dtype=torch.float64)
     with pytest.raises(AssertionError, match="overwrote|modified"):
@@ -104,6 +121,13 @@ def test_the_suite_catches_broken_envs():
                                                   autoreset_mode=mode, dtype=torch.float64)
         with pytest.raises(AssertionError, match="differ from the reference"):
             check_against_sync(make, single, AutoresetMode.NEXT_STEP)
+    # (in SAME_STEP mode an invalid step's flag sits in final_info, which the override does not touch)
+    for broken, what, mode in ((_NoInvalidInfoEnv, "infos lack 'invalid'", AutoresetMode.NEXT_STEP),
+                               (_ListSeedEnv, "list-seeded", AutoresetMode.SAME_STEP)):
+        make = lambda mode, broken=broken: broken("PendulumSwingUp", 4, max_episode_steps=13,
+                                                  autoreset_mode=mode, dtype=torch.float64)
+        with pytest.raises(AssertionError, match=what):
+            check_against_sync(make, single, mode)
 
 
 def test_one_bad_environment_does_not_poison_the_batch():
@@ -143,6 +167,30 @@ def test_bad_arguments_are_rejected_with_the_argument_named():
         env.reset(options={"reset_mask": np.array([1, 0])})
     with pytest.raises(ValueError, match="seed"):
         env.reset(seed=[1, 2, 3])
+    for bad in (1.5, True, "7", [1, True], [1.0, 2]):
+        with pytest.raises(ValueError, match="seed"):
+            env.reset(seed=bad)
+    with pytest.raises(ValueError, match="at least one"):
+        env.reset(options={"reset_mask": np.zeros(2, dtype=bool)})
+    with pytest.raises(ValueError, match="num_envs"):
+        TaskVectorEnv("PendulumSwingUp", True)
+    assert TaskVectorEnv("PendulumSwingUp", np.int64(3)).num_envs == 3
+    with pytest.raises(ValueError, match="seed"):
+        TaskEnv("PendulumSwingUp").reset(seed=True)
+
+
+def test_a_longer_horizon_than_the_tasks_widens_the_proven_bounds():
+    """The observation bound is proven for the horizon the env runs: overriding max_episode_steps
+    rebuilds the task with it, so a pumped pendulum never leaves observation_space."""
+    short = TaskVectorEnv("PendulumSwingUp", 4, dtype=torch.float64)
+    long_ = TaskVectorEnv("PendulumSwingUp", 4, dtype=torch.float64, max_episode_steps=2000)
+    assert long_.task.max_episode_steps == 2000
+    assert long_.single_observation_space.high[2] > 5 * short.single_observation_space.high[2]
+    obs, _ = long_.reset(seed=0)
+    for _ in range(2000):  # pump: torque along the speed
+        obs, *_ = long_.step(np.sign(obs[:, 2:3]) + (obs[:, 2:3] == 0))
+        assert np.all(np.abs(obs) <= long_.single_observation_space.high)
+    assert np.abs(obs[:, 2]).max() > short.single_observation_space.high[2]  # beyond the 200-step bound
 
 
 def test_seeding_matches_sync_vector_env_convention_and_lists():
