@@ -194,16 +194,27 @@ class MPCPolicy(nn.Module):
                 if isinstance(v, nn.Parameter):
                     self.register_parameter(f"system_{f.name}", v)
 
-    def _dtype_device(self) -> tuple[torch.dtype, torch.device]:
-        t = next(iter(self.parameters()), None)
-        if t is None:
-            t = next(iter(self.buffers()), None)
-        return (torch.get_default_dtype(), torch.device("cpu")) if t is None else (t.dtype, t.device)
+    def _dtype_device(self) -> tuple[torch.dtype, torch.device] | None:
+        """The dtype and device of the module's floating tensors; None when it has none (a policy with a
+        parameter-free cost and float limits then follows its observations)."""
+        for t in (*self.parameters(), *self.buffers()):
+            if t.dtype.is_floating_point:
+                return t.dtype, t.device
+        return None
 
-    def initial_state(self, batch_shape: int | tuple[int, ...] | torch.Size) -> MPCState:
-        """A cold start (zero controls) for a batch of environments, in the module's dtype and device."""
-        dtype, device = self._dtype_device()
-        return MPCState.cold(batch_shape, self.horizon, self.system.m, dtype=dtype, device=device)
+    def initial_state(self, batch_shape: int | tuple[int, ...] | torch.Size, *,
+                      dtype: torch.dtype | None = None,
+                      device: torch.device | str | None = None) -> MPCState:
+        """A cold start (zero controls) for a batch of environments, in the module's dtype and device
+        (for a module without tensors: ``dtype``/``device``, default torch's default dtype on CPU)."""
+        own = self._dtype_device()
+        if own is not None:
+            if dtype is not None and dtype != own[0]:
+                raise TypeError(f"MPCPolicy.initial_state: argument 'dtype' is {dtype} but the policy is "
+                                f"{own[0]}")
+            dtype, device = own[0], own[1] if device is None else device
+        return MPCState.cold(batch_shape, self.horizon, self.system.m,
+                             dtype=torch.get_default_dtype() if dtype is None else dtype, device=device)
 
     def forward(self, obs: Tensor, state: MPCState | None = None) -> tuple[Tensor, MPCState]:
         """``(action (*B, m), next_state)`` for observations ``obs (*B, n)``."""
@@ -211,10 +222,13 @@ class MPCPolicy(nn.Module):
         if not isinstance(obs, Tensor) or obs.dim() < 1 or obs.shape[-1] != n:
             raise ValueError(f"MPCPolicy: obs must have shape (*B, {n}), got "
                              f"{tuple(obs.shape) if isinstance(obs, Tensor) else type(obs).__name__}")
-        dtype, _ = self._dtype_device()
-        if obs.dtype != dtype:
-            raise TypeError(f"MPCPolicy: obs has dtype {obs.dtype} but the policy is {dtype}; "
+        own = self._dtype_device()
+        if own is not None and obs.dtype != own[0]:
+            raise TypeError(f"MPCPolicy: obs has dtype {obs.dtype} but the policy is {own[0]}; "
                             "use policy.to(dtype) or cast the observation")
+        if state is not None and state.u.dtype != obs.dtype:
+            raise TypeError(f"MPCPolicy: the warm start has dtype {state.u.dtype} but obs is {obs.dtype}; "
+                            "make it with policy.initial_state(..., dtype=obs.dtype)")
         cost = self.cost(obs)
         if not callable(getattr(cost, "evaluate", None)):
             raise TypeError(f"MPCPolicy: the cost module must return a cost with evaluate(x, u) "

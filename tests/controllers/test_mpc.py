@@ -247,3 +247,35 @@ def test_float_limits_take_the_policy_dtype():
     assert pol.u_lower.dtype == D64 and pol.u_upper == 2.0
     with pytest.raises(TypeError, match="argument 'u_lower'"):
         MPCPolicy(Pendulum(), 5, _cost(5), u_lower="-2")
+
+
+class _FixedCost(nn.Module):
+    """A cost module without parameters or buffers: the cost follows the observation's dtype."""
+
+    def __init__(self, T):
+        super().__init__()
+        self.T = T
+
+    def forward(self, obs):
+        kw = dict(dtype=obs.dtype, device=obs.device)
+        return QuadraticCost(Q=torch.diag(torch.tensor([1.0, 0.1], **kw)).expand(self.T + 1, 2, 2),
+                             R=torch.tensor([[0.05]], **kw),
+                             x_ref=torch.tensor([math.pi, 0.0], **kw).expand(*obs.shape[:-1], 1, 2))
+
+
+def test_a_policy_without_tensors_follows_the_observation_dtype():
+    """No parameters and float limits: the policy has no dtype of its own, so float64 and float32
+    observations both run (the same plan up to float32 resolution); a warm start of another dtype is a
+    clear error, and initial_state takes the dtype asked for."""
+    pol = MPCPolicy(Pendulum(), 6, _FixedCost(6), u_lower=-2.0, u_upper=2.0, options=TIGHT)
+    obs = torch.tensor([[math.pi - 0.4, 0.1], [0.3, 0.0]], dtype=D64)
+    st64 = pol.initial_state(2, dtype=D64)
+    assert st64.u.dtype == D64
+    a64, _ = pol(obs, st64)
+    a32, _ = pol(obs.float(), pol.initial_state(2, dtype=torch.float32))
+    assert a64.dtype == D64 and a32.dtype == torch.float32
+    torch.testing.assert_close(a32.double(), a64, atol=1e-3, rtol=0)
+    with pytest.raises(TypeError, match="warm start"):
+        pol(obs, pol.initial_state(2, dtype=torch.float32))
+    with pytest.raises(TypeError, match="argument 'dtype'"):
+        _policy().initial_state(2, dtype=torch.float32)
