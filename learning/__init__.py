@@ -6,8 +6,10 @@ imported only by :mod:`learning.sb3`.
 """
 
 from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
+from learning.evaluate import EvalResult, evaluate
+from learning.policies import MPCExpert, as_policy
 from learning.registration import env_id, register_envs
 from learning.vector import TaskVectorEnv
 
 __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "CartPoleSwingUp",
-           "register_envs", "env_id"]
+           "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert"]

@@ -6,7 +6,10 @@ Every model is a :class:`controllers.dynamics.System` (a frozen dataclass with `
 model as a :class:`controllers.dynamics.NonlinearDynamics`).  Parameters broadcast against ``x.shape[:-1]``.
 """
 
+from controllers.systems.arm import PlanarArm
+from controllers.systems.bicopter import Bicopter
+from controllers.systems.car import Car
 from controllers.systems.cartpole import CartPole
 from controllers.systems.pendulum import Pendulum
 
-__all__ = ["Pendulum", "CartPole"]
+__all__ = ["Pendulum", "CartPole", "Car", "Bicopter", "PlanarArm"]

@@ -52,7 +52,8 @@ def test_observations_stay_in_the_space_under_extreme_actions(name):
     env = gym.make(learning.env_id(name))
     env.reset(seed=1)
     for k in range(600):  # three episodes of bang-bang actions pumping energy
-        o, r, term, trunc, _ = env.step(np.array([1.0 if (k // 7) % 2 else -1.0], np.float32))
+        o, r, term, trunc, _ = env.step(np.full(env.action_space.shape, 1.0 if (k // 7) % 2 else -1.0,
+                                                np.float32))
         assert env.observation_space.contains(o), (k, o)
         if term or trunc:
             env.reset()
@@ -64,11 +65,12 @@ def test_state_from_observation_round_trip(name):
     env.reset(seed=3)
     for _ in range(30):
         o, *_ = env.step(env.action_space.sample())
-        x = env.task.state_from_obs(torch.from_numpy(o)[None])[0].numpy()
-        ang = 0 if name == "PendulumSwingUp" else 1
-        d = x - env.state
-        d[ang] = (d[ang] + math.pi) % (2 * math.pi) - math.pi
-        np.testing.assert_allclose(d, 0, atol=1e-12)
+        x = env.task.state_from_obs(torch.from_numpy(o)[None])
+        # the state up to whole turns of its angles (observed as cos/sin), and the same observation
+        np.testing.assert_allclose(env.task.observe(x)[0].numpy(), o, atol=1e-12, rtol=0)
+        d = x[0].numpy() - env.state
+        np.testing.assert_allclose(np.minimum(np.abs(d), np.abs((d + math.pi) % (2 * math.pi) - math.pi)), 0,
+                                   atol=1e-12)
 
 
 def test_actions_are_clipped_and_non_finite_actions_end_the_episode():
@@ -122,7 +124,7 @@ def test_render_draws_the_state(name):
     f0 = env.render()
     assert f0.shape == (256, 256, 3) and f0.dtype == np.uint8
     for _ in range(10):
-        env.step(np.array([1.0], np.float32))
+        env.step(np.ones(env.action_space.shape, np.float32))
     f1 = env.render()
     assert (f0 != 255).any() and not np.array_equal(f0, f1)
     assert TaskEnv(name).render() is None

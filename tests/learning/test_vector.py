@@ -212,7 +212,7 @@ def test_cuda_matches_cpu(name, compiled):
     gpu.reset(seed=0)
     g = torch.Generator().manual_seed(0)
     for _ in range(250):
-        a = torch.rand(64, 1, generator=g, dtype=torch.float64) * 2 - 1
+        a = torch.rand(64, cpu.task.m, generator=g, dtype=torch.float64) * 2 - 1
         oc, rc, tc, trc, _ = cpu.step(a)
         og, rg, tg, trg, _ = gpu.step(a.cuda())
         assert og.device.type == "cuda"
