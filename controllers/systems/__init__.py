@@ -10,6 +10,7 @@ from controllers.systems.arm import PlanarArm
 from controllers.systems.bicopter import Bicopter
 from controllers.systems.car import Car
 from controllers.systems.cartpole import CartPole
+from controllers.systems.panda import JacobianFrame, Panda
 from controllers.systems.pendulum import Pendulum
 
-__all__ = ["Pendulum", "CartPole", "Car", "Bicopter", "PlanarArm"]
+__all__ = ["Pendulum", "CartPole", "Car", "Bicopter", "PlanarArm", "Panda", "JacobianFrame"]

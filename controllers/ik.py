@@ -1,0 +1,280 @@
+"""Differential and batched inverse kinematics for serial arms (seed 004 §5; issue 11 §4).
+
+* :func:`dls_joint_velocity` — resolved-rate control: a twist ``ξ (*B, 6)`` to joint velocities by damped
+  least squares, ``q̇ = Jᵀ (J Jᵀ + λ² I)⁻¹ ξ``, plus a joint-limit-avoidance velocity projected into the
+  null space of ``J`` (``(I − J⁺ J) k ∇h(q)``), so it does not change the end-effector twist.
+* :func:`solve_ik` — batched Levenberg–Marquardt on the pose error, with per-element adaptive damping,
+  joint limits (2π wrapping, active set, clamping), per-element freezing once converged, and optional
+  per-goal multi-start (extra starting configurations solved as parallel lanes of the same batch);
+  returns an :class:`IKResult` with per-element status.
+
+The robot is anything with ``dof``, ``fk_and_jacobian(q, frame) -> (T (*B, 4, 4), J (*B, 6, dof))`` whose
+``"world"`` Jacobian maps ``q̇`` to ``[ṗ, ω]`` in base coordinates (``ṗ`` of the end-effector origin; the
+convention of pytorch-kinematics), ``joint_limits(dtype, device) -> (q_min, q_max)``, ``home(dtype, device)``
+and ``random_q(n, generator, dtype, device)`` — e.g. :class:`controllers.systems.panda.Panda`.
+
+Pose error used by :func:`solve_ik` (world frame, the frame of that Jacobian)::
+
+    e = [p* − p,  φ],   φ = log(R* Rᵀ) ∈ so(3)   (torchlie.so3.log),
+    e(q + δ) ≈ e − Ĵ δ,  Ĵ = [J_v; J_r⁻¹(φ) J_ω]   (from R(q + δ) ≈ exp(J_ω δ) R and torchlie's J_r),
+
+so the solver's success test (``|p* − p| < pos_tol``, ``|φ| < rot_tol`` — ``|φ|`` is the angle of the
+rotation between the poses) is a test on the very residual it minimizes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from controllers.problem import Reason, SolverStatus
+from torchlie import so3
+
+__all__ = ["IKResult", "dls_joint_velocity", "joint_limit_gradient", "pose_error", "solve_ik"]
+
+
+# --------------------------------------------------------------------------------------------------
+# differential IK
+# --------------------------------------------------------------------------------------------------
+
+def joint_limit_gradient(q: Tensor, q_min: Tensor, q_max: Tensor) -> Tensor:
+    """``−∇h(q)`` for ``h(q) = (1/2n) Σ ((q_i − q̄_i)/(q_max,i − q_min,i))²`` (Liégeois), ``q̄`` the mid-range.
+
+    A joint velocity along this vector moves every joint towards the middle of its range, faster the nearer it
+    is to a limit (relative to the range).  ``(*B, n)``.
+    """
+    rng = q_max - q_min
+    return -(q - 0.5 * (q_min + q_max)) / (rng * rng * q.shape[-1])
+
+
+def dls_joint_velocity(J: Tensor, twist: Tensor, damping: Tensor | float = 1e-2, q: Tensor | None = None,
+                       q_limits: tuple[Tensor, Tensor] | None = None, nullspace_gain: Tensor | float = 1.0
+                       ) -> Tensor:
+    """Joint velocities ``(*B, n)`` for a twist ``(*B, 6)``: damped least squares + joint-limit avoidance.
+
+    ``q̇ = Jᵀ (J Jᵀ + λ² I)⁻¹ ξ + (I − J⁺ J) k (−∇h(q))`` with ``λ = damping`` (float or ``(*B,)``),
+    ``k = nullspace_gain`` and ``h`` of :func:`joint_limit_gradient`.  The second term is added only when both
+    ``q (*B, n)`` and ``q_limits = (q_min, q_max)`` are given.  ``J⁺`` is the pseudo-inverse (SVD, with
+    singular values below ``n · eps · σ_max`` dropped), so ``J`` times the null-space term is zero up to
+    rounding: the joint-limit motion never changes the end-effector twist.  ``J (*B, 6, n)`` and ``twist``
+    must be in the same frame (both "world" or both "body" for a :class:`~controllers.systems.panda.Panda`).
+    Batch dims broadcast; dtype and device follow ``J``.
+    """
+    if J.ndim < 2 or twist.shape[-1] != J.shape[-2]:
+        raise ValueError(f"dls_joint_velocity: J (*B, m, n) and twist (*B, m) do not match: "
+                         f"{tuple(J.shape)} and {tuple(twist.shape)}")
+    m = J.shape[-2]
+    lam = torch.as_tensor(damping, dtype=J.dtype, device=J.device)
+    eye = torch.eye(m, dtype=J.dtype, device=J.device)
+    A = J @ J.transpose(-1, -2) + (lam * lam)[..., None, None] * eye
+    y = torch.linalg.solve(A, twist.unsqueeze(-1))
+    qd = (J.transpose(-1, -2) @ y).squeeze(-1)
+    if q is None or q_limits is None:
+        return qd
+    q_min, q_max = q_limits
+    z = torch.as_tensor(nullspace_gain, dtype=J.dtype, device=J.device)[..., None] * joint_limit_gradient(
+        q, q_min, q_max)
+    Jp = torch.linalg.pinv(J)
+    z_null = z - (Jp @ (J @ z.unsqueeze(-1))).squeeze(-1)
+    return qd + z_null
+
+
+# --------------------------------------------------------------------------------------------------
+# batched IK
+# --------------------------------------------------------------------------------------------------
+
+def pose_error(T: Tensor, target: Tensor) -> Tensor:
+    """World-frame pose error ``[p* − p, log(R* Rᵀ)]`` ``(*B, 6)`` of ``T`` to ``target`` ``(*B, 4, 4)``."""
+    R, p = T[..., :3, :3], T[..., :3, 3]
+    Rt, pt = target[..., :3, :3], target[..., :3, 3]
+    phi = so3.log(Rt @ R.transpose(-1, -2))
+    return torch.cat((pt - p, phi), -1)
+
+
+@dataclass(frozen=True, eq=False)
+class IKResult:
+    """Per-element outcome of :func:`solve_ik` (batch shape ``*B`` of the target).
+
+    Attributes:
+        q: ``(*B, n)`` the best configuration found (inside the joint limits).
+        success: ``(*B,)`` bool — ``pos_err < pos_tol`` and ``rot_err < rot_tol`` at ``q``.
+        iterations: ``(*B,)`` int64 — iterations spent on this goal (at most ``max_iter``; ``0`` if a start
+            already solved it).  One iteration is one damped solve and one pose + Jacobian evaluation per
+            active lane, the step accepted or rejected.
+        evaluations: ``(*B,)`` int64 — pose + Jacobian evaluations over all lanes (``iterations`` when
+            single-start).
+        pos_err: ``(*B,)`` position error ``|p* − p(q)|`` (m).
+        rot_err: ``(*B,)`` rotation error, the angle of ``R* R(q)ᵀ`` (rad).
+        reason: ``(*B,)`` int64 codes of :class:`controllers.problem.Reason`: ``CONVERGED``,
+            ``NONFINITE_INPUT`` (NaN/inf in the target or a start of this element), ``MAX_ITERATIONS``.
+        lane: ``(*B,)`` int64 — which start the result comes from (0: ``q0``, ``k``: ``seeds[k − 1]``).
+    """
+
+    q: Tensor
+    success: Tensor
+    iterations: Tensor
+    evaluations: Tensor
+    pos_err: Tensor
+    rot_err: Tensor
+    reason: Tensor
+    lane: Tensor
+
+    @property
+    def status(self) -> SolverStatus:
+        return SolverStatus(converged=self.success, iterations=self.iterations, reason=self.reason)
+
+
+def _linearized(J: Tensor, e: Tensor) -> Tensor:
+    """``Ĵ = [J_v; J_r⁻¹(φ) J_ω]`` ``(N, 6, n)``."""
+    return torch.cat((J[:, :3], so3.right_jacobian_inv(e[:, 3:]) @ J[:, 3:]), 1)
+
+
+def _wrap(x: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """Revolute joints: a value past a limit moves by ∓2π where that lands inside the range (same pose)."""
+    two_pi = 2 * torch.pi
+    x = torch.where((x > hi) & (x - two_pi >= lo), x - two_pi, x)
+    return torch.where((x < lo) & (x + two_pi <= hi), x + two_pi, x)
+
+
+def _cost(e: Tensor, w: Tensor) -> Tensor:
+    return (e * e * w).sum(-1)
+
+
+def _solve_spd(A: Tensor, b: Tensor) -> Tensor:
+    """``A⁻¹ b`` for a batch of SPD ``A``; a zero step where the factorization fails (then rejected)."""
+    L, info = torch.linalg.cholesky_ex(A)
+    x = torch.cholesky_solve(b.unsqueeze(-1), L).squeeze(-1)
+    return torch.where((info == 0)[:, None] & torch.isfinite(x), x, 0.0)
+
+
+def solve_ik(robot, target: Tensor, q0: Tensor | None = None, *, max_iter: int = 30, pos_tol: float = 1e-3,
+             rot_tol: float = 1e-2, seeds: Tensor | None = None, rot_scale: float = 0.2,
+             damping: float = 1e-3, wrap: bool = True) -> IKResult:
+    """Batched IK: ``q`` with ``fk(q) ≈ target (*B, 4, 4)`` to ``pos_tol`` (m) and ``rot_tol`` (rad).
+
+    Levenberg–Marquardt on the world-frame pose error of :func:`pose_error`, weighted
+    ``‖e_p‖² + rot_scale² ‖φ‖²`` (``rot_scale`` in metres per radian), with the damping
+    ``λ = μ (E + damping)`` (Sugihara's error-proportional damping, ``E`` the weighted squared error) and a
+    per-element factor ``μ`` divided by 3 after an accepted step and multiplied by 4 after a rejected one
+    (a step is accepted when it decreases ``E``).  Joint limits: with ``wrap`` (revolute joints), a joint
+    value that would leave its range moves by ∓2π where that lands inside the range (same pose — this frees a
+    joint such as the Panda's q7 that would otherwise be pinned at a limit); a joint on a limit whose step
+    still points outwards is frozen for that step (its column removed), and the step is clamped into range.
+    Every element stops as soon as it meets both tolerances; the loop runs on the still-active elements only
+    (gathered into one batch), so the work per iteration shrinks as elements converge.
+
+    Multi-start: ``seeds (K, n)`` (or ``(*B, K, n)``) adds ``K`` starts per goal, solved as ``K + 1`` lanes in
+    the same batch (lane 0 starts from ``q0``).  A goal stops when any of its lanes meets the tolerances, and
+    its result is that lane's (the lowest-index one on a tie; the lane with the smallest error if none did).
+    ``iterations`` counts the iterations of that goal (the depth, at most ``max_iter``); ``evaluations``
+    counts every pose + Jacobian evaluation spent on it over all lanes (at most ``(K + 1) · max_iter``).
+
+    Args:
+        robot: see the module docstring (e.g. :class:`controllers.systems.panda.Panda`).
+        target: ``(*B, 4, 4)`` goal poses (their dtype and device are the solve's).
+        q0: start configurations ``(n,)`` or ``(*B, n)``; default ``robot.home()`` for every goal.
+        max_iter: iteration budget per goal (one iteration: one damped solve and one pose + Jacobian
+            evaluation per active lane, accepted or rejected).
+
+    Returns:
+        :class:`IKResult`.  Non-finite values in an element's target or ``q0`` make that element fail with
+        ``NONFINITE_INPUT`` and leave the others untouched.
+    """
+    if target.ndim < 2 or target.shape[-2:] != (4, 4):
+        raise ValueError(f"solve_ik: target must be (*B, 4, 4), got {tuple(target.shape)}")
+    if not target.is_floating_point():
+        raise TypeError(f"solve_ik: target must be floating point, got {target.dtype}")
+    dtype, device = target.dtype, target.device
+    n = robot.dof
+    batch = target.shape[:-2]
+    lo, hi = robot.joint_limits(dtype, device)
+    home = robot.home(dtype, device)
+    if q0 is None:
+        q0 = home
+    for name, t in (("q0", q0), ("seeds", seeds)):
+        if t is not None and (t.dtype != dtype or t.device != device):
+            raise TypeError(f"solve_ik: {name} ({t.dtype}, {t.device}) must match target ({dtype}, {device})")
+    starts = q0.expand(*batch, n).unsqueeze(-2)
+    if seeds is not None:
+        starts = torch.cat((starts, seeds.expand(*batch, *seeds.shape[-2:])), -2)
+    L = starts.shape[-2]
+    N = math.prod(batch)
+    tgt = target.reshape(N, 1, 4, 4).expand(N, L, 4, 4).reshape(N * L, 4, 4)
+    q = starts.reshape(N * L, n).clone()
+    finite = (torch.isfinite(target.reshape(N, 16)).all(-1)
+              & torch.isfinite(starts.reshape(N, L * n)).all(-1))  # (N,)
+    finite_l = finite.repeat_interleave(L)
+    # non-finite elements are solved on a harmless stand-in (and reported as NONFINITE_INPUT)
+    tgt = torch.where(finite_l[:, None, None], tgt, torch.eye(4, dtype=dtype, device=device))
+    q = torch.where(finite_l[:, None], q, home).clamp(lo, hi)
+    w = torch.tensor((1.0,) * 3 + (rot_scale ** 2,) * 3, dtype=dtype, device=device)
+    margin = 16 * torch.finfo(dtype).eps
+    eye_n = torch.eye(n, dtype=dtype, device=device)
+
+    def solved(err):
+        return (err[..., :3].norm(dim=-1) < pos_tol) & (err[..., 3:].norm(dim=-1) < rot_tol)
+
+    T, J = robot.fk_and_jacobian(q, "world")
+    e = pose_error(T, tgt)
+    E = _cost(e, w)
+    mu = torch.ones(N * L, dtype=dtype, device=device)
+    evals = torch.zeros(N * L, dtype=torch.int64, device=device)
+    depth = torch.zeros(N, dtype=torch.int64, device=device)
+    goal_done = solved(e).view(N, L).any(-1) | ~finite
+    done = goal_done.repeat_interleave(L)
+    for _ in range(max_iter):
+        idx = torch.nonzero(~done).squeeze(-1)
+        if idx.numel() == 0:
+            break
+        qa, ea, Ea, mua = q[idx], e[idx], E[idx], mu[idx]
+        Jh = _linearized(J[idx], ea)
+        JW = Jh.transpose(-1, -2) * w
+        g = (JW @ ea.unsqueeze(-1)).squeeze(-1)
+        H = JW @ Jh
+        lamI = (mua * (Ea + damping))[:, None, None] * eye_n
+        d = _solve_spd(H + lamI, g)
+        # active set: joints on a limit whose step points outwards (and cannot wrap) are frozen for this step
+        x = _wrap(qa + d, lo, hi) if wrap else qa + d
+        blocked = ((qa <= lo + margin) & (x < lo)) | ((qa >= hi - margin) & (x > hi))
+        if bool(blocked.any()):
+            keep = (~blocked).to(dtype)
+            d = _solve_spd(H * keep[:, :, None] * keep[:, None, :] + lamI, g * keep)
+            x = _wrap(qa + d, lo, hi) if wrap else qa + d
+        qn = x.clamp(lo, hi)
+
+        Tn, Jn = robot.fk_and_jacobian(qn, "world")
+        en = pose_error(Tn, tgt[idx])
+        En = _cost(en, w)
+        accept = En < Ea  # False for a non-finite En
+        evals[idx] += 1
+        mu[idx] = torch.where(accept, (mua / 3).clamp_min(1e-6), (mua * 4).clamp_max(1e12))
+        q[idx] = torch.where(accept[:, None], qn, qa)
+        T[idx] = torch.where(accept[:, None, None], Tn, T[idx])
+        J[idx] = torch.where(accept[:, None, None], Jn, J[idx])
+        e[idx] = torch.where(accept[:, None], en, ea)
+        E[idx] = torch.where(accept, En, Ea)
+        active_goal = ~goal_done
+        depth += active_goal.to(torch.int64)
+        goal_done = goal_done | solved(e).view(N, L).any(-1)
+        done = goal_done.repeat_interleave(L)
+
+    # per goal: the first solved lane, else the lane with the smallest error
+    ok = solved(e).view(N, L)
+    score = torch.where(ok, -1.0, E.view(N, L).nan_to_num(torch.inf))
+    lane = torch.argmin(score, -1)  # argmin returns the first minimal index
+    pick = torch.arange(N, device=device) * L + lane
+    q_best, e_best = q[pick], e[pick]
+    success = ok.any(-1) & finite
+    reason = torch.where(success, int(Reason.CONVERGED), int(Reason.MAX_ITERATIONS))
+    reason = torch.where(finite, reason, int(Reason.NONFINITE_INPUT))
+    nan = torch.full((N,), torch.nan, dtype=dtype, device=device)
+    pos_err = torch.where(finite, e_best[:, :3].norm(dim=-1), nan)
+    rot_err = torch.where(finite, e_best[:, 3:].norm(dim=-1), nan)
+    return IKResult(
+        q=q_best.reshape(*batch, n), success=success.reshape(batch), iterations=depth.reshape(batch),
+        evaluations=evals.view(N, L).sum(-1).reshape(batch), pos_err=pos_err.reshape(batch),
+        rot_err=rot_err.reshape(batch), reason=reason.to(torch.int64).reshape(batch),
+        lane=lane.reshape(batch))

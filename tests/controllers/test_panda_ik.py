@@ -1,0 +1,194 @@
+"""Panda kinematics (pytorch-kinematics on the shipped URDF vs an independent DH product) and batched IK."""
+
+import math
+
+import pytest
+import torch
+
+from controllers.ik import dls_joint_velocity, joint_limit_gradient, solve_ik
+from controllers.problem import Reason
+from controllers.systems.panda import Panda
+from torchlie import se3
+
+pytest.importorskip("pytorch_kinematics")
+
+D64 = torch.float64
+
+
+@pytest.fixture(scope="module")
+def panda():
+    return Panda()
+
+
+def _q(n, seed, dtype=D64):
+    return Panda.random_q(n, torch.Generator().manual_seed(seed), dtype=dtype)
+
+
+# -------------------------------------------------------------------------------------------------- FK
+def test_fk_published_poses(panda):
+    # Franka's modified-DH table (https://frankaemika.github.io/docs/control_parameters.html).  At q = 0 the
+    # arm is stretched up: x = a4 + a5 + a7 = 0.0825 − 0.0825 + 0.088, z = d1 + d3 + d5 − d_F =
+    # 0.333 + 0.316 + 0.384 − 0.107 (the flange points down), R = diag(1, −1, −1).
+    T0 = panda.fk(torch.zeros(7, dtype=D64))
+    expect = torch.tensor([[1.0, 0, 0, 0.088], [0, -1, 0, 0], [0, 0, -1, 0.926], [0, 0, 0, 1]], dtype=D64)
+    torch.testing.assert_close(T0, expect, atol=1e-12, rtol=0)
+    # q4 = −π/2 (others 0), by hand from the same table: the upper arm is vertical (z = d1 + d3 at the elbow,
+    # x = a4), the forearm then runs along +x (d5) rising by −a5 = 0.0825, a7 = 0.088 drops the wrist and the
+    # flange axis points along −x: p = (a4 + d5 − d_F, 0, d1 + d3 − a5 − a7), z_F = −x.
+    q = torch.zeros(7, dtype=D64)
+    q[3] = -math.pi / 2
+    T = panda.fk(q)
+    expect = torch.tensor([0.0825 + 0.384 - 0.107, 0.0, 0.333 + 0.316 + 0.0825 - 0.088], dtype=D64)
+    torch.testing.assert_close(T[:3, 3], expect, atol=1e-12, rtol=0)
+    torch.testing.assert_close(T[:3, 2], torch.tensor([-1.0, 0, 0], dtype=D64), atol=1e-12, rtol=0)
+    # The "ready" pose of libfranka/franka_ros (q = (0, −π/4, 0, −3π/4, 0, π/2, π/4)): with the Franka Hand
+    # the published end-effector pose O_T_EE is x ≈ 0.307, z ≈ 0.487, R = diag(1, −1, −1).
+    T = Panda("panda_hand_tcp").fk(Panda.home(D64))
+    flip = torch.diag(torch.tensor([1.0, -1, -1], dtype=D64))
+    torch.testing.assert_close(T[:3, :3], flip, atol=1e-12, rtol=0)
+    torch.testing.assert_close(T[:3, 3], torch.tensor([0.307, 0.0, 0.487], dtype=D64), atol=1e-3, rtol=0)
+
+
+@pytest.mark.parametrize("end", ["panda_link8", "panda_hand", "panda_hand_tcp"])
+def test_fk_pk_equals_dh(end):
+    P = Panda(end)
+    q = _q((4, 25), 0)
+    T = P.fk(q)
+    assert T.shape == (4, 25, 4, 4) and T.dtype == D64
+    assert (T - P.fk_dh(q)).abs().max() < 1e-12
+    T32 = P.fk(q.float())
+    assert T32.dtype == torch.float32 and (T32.double() - T).abs().max() < 1e-5
+
+
+def test_urdf_limits_match_published(panda):
+    chain = panda.chain()
+    lo, hi = chain.get_joint_limits()
+    q_min, q_max = Panda.joint_limits(D64)
+    assert lo == q_min.tolist() and hi == q_max.tolist()
+    assert [v[1] for v in zip(*chain.get_joint_velocity_limits())] == Panda.velocity_limits(D64).tolist()
+
+
+# -------------------------------------------------------------------------------------------------- Jacobian
+def test_jacobian_vs_central_differences(panda):
+    q = _q(6, 1)
+    T, Jb = panda.fk_and_jacobian(q, "body")
+    h = 1e-6
+    cols = []
+    for i in range(7):
+        dq = torch.zeros(7, dtype=D64)
+        dq[i] = h
+        # body twist: T(q + h e_i) ≈ T exp(h J_b e_i)
+        xp = se3.log(se3.compose(se3.inverse(T), panda.fk(q + dq)))
+        xm = se3.log(se3.compose(se3.inverse(T), panda.fk(q - dq)))
+        cols.append((xp - xm) / (2 * h))
+    assert (torch.stack(cols, -1) - Jb).abs().max() < 1e-8
+    # world (pytorch-kinematics) and spatial frames from the body one
+    Jw, Js = panda.jacobian(q, "world"), panda.jacobian(q, "spatial")
+    torch.testing.assert_close(Js, se3.adjoint(T) @ Jb, atol=1e-12, rtol=0)
+    R, p = T[..., :3, :3], T[..., :3, 3]
+    torch.testing.assert_close(Jw[..., 3:, :], R @ Jb[..., 3:, :], atol=1e-12, rtol=0)
+    torch.testing.assert_close(Jw[..., :3, :], R @ Jb[..., :3, :], atol=1e-12, rtol=0)
+    assert p.shape == (6, 3)
+
+
+def test_jacobian_vs_jacrev_of_fk_dh(panda):
+    q = _q(5, 2)
+    dT = torch.func.vmap(torch.func.jacrev(panda.fk_dh))(q)  # (5, 4, 4, 7)
+    Jw = panda.jacobian(q, "world")
+    torch.testing.assert_close(Jw[:, :3], dT[:, :3, 3], atol=1e-12, rtol=0)
+    # ω̂ = Ṙ Rᵀ
+    R = panda.fk_dh(q)[:, :3, :3]
+    W = torch.einsum("bijk,blj->bilk", dT[:, :3, :3], R)
+    omega = torch.stack((W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]), 1)
+    torch.testing.assert_close(Jw[:, 3:], omega, atol=1e-12, rtol=0)
+
+
+# -------------------------------------------------------------------------------------------------- DLS
+def test_dls_small_damping_is_pseudo_inverse(panda):
+    q = Panda.home(D64).expand(3, 7) + 0.1 * _q(3, 3) / 3
+    J = panda.jacobian(q)
+    assert torch.linalg.svdvals(J).amin() > 0.05  # well conditioned
+    xi = torch.randn(3, 6, generator=torch.Generator().manual_seed(0), dtype=D64)
+    qd = dls_joint_velocity(J, xi, damping=1e-9)
+    torch.testing.assert_close(qd, (torch.linalg.pinv(J) @ xi.unsqueeze(-1)).squeeze(-1), atol=1e-10, rtol=0)
+    torch.testing.assert_close((J @ qd.unsqueeze(-1)).squeeze(-1), xi, atol=1e-10, rtol=0)
+
+
+def test_dls_nullspace_keeps_twist_and_moves_off_limits(panda):
+    lo, hi = Panda.joint_limits(D64)
+    q = _q(8, 4)
+    q[:, 6] = hi[6] - 0.01  # q7 near its upper limit
+    J = panda.jacobian(q)
+    xi = torch.randn(8, 6, generator=torch.Generator().manual_seed(1), dtype=D64)
+    base = dls_joint_velocity(J, xi, damping=1e-3)
+    full = dls_joint_velocity(J, xi, damping=1e-3, q=q, q_limits=(lo, hi), nullspace_gain=5.0)
+    null = full - base
+    assert (J @ null.unsqueeze(-1)).abs().max() < 1e-12
+    z = joint_limit_gradient(q, lo, hi)
+    assert ((null * z).sum(-1) > 0).all()  # the null-space motion decreases h (towards the middle)
+
+
+# -------------------------------------------------------------------------------------------------- IK
+def _goals(n, seed, dtype=D64):
+    return Panda().fk(_q(n, seed, dtype))
+
+
+def test_ik_success_rate_from_home(panda):
+    # Goals: FK of 1,000 uniform random configurations inside the limits; starts: the "ready" pose plus
+    # PANDA_IK_SEEDS[0] as a second lane, at most 30 iterations deep (60 evaluations over both lanes).
+    target = _goals(1000, 11)
+    r = solve_ik(panda, target, seeds=Panda.ik_seeds(D64)[:1])
+    assert r.success.double().mean() >= 0.95
+    assert int(r.iterations.max()) <= 30 and int(r.evaluations.max()) <= 60
+    s = r.success
+    T = panda.fk(r.q[s])
+    assert ((T[:, :3, 3] - target[s, :3, 3]).norm(dim=-1) < 1e-3).all()
+    lo, hi = Panda.joint_limits(D64)
+    assert ((r.q >= lo) & (r.q <= hi)).all()
+    assert (r.reason[s] == Reason.CONVERGED).all() and (r.reason[~s] == Reason.MAX_ITERATIONS).all()
+    # single start (no seeds): the honest baseline, a lower rate
+    r1 = solve_ik(panda, target)
+    assert 0.8 <= r1.success.double().mean() <= r.success.double().mean()
+    assert (r1.evaluations == r1.iterations).all()
+
+
+def test_ik_nan_element_fails_alone(panda):
+    target = _goals(6, 12)
+    bad = target.clone()
+    bad[2, 0, 3] = float("nan")
+    r, rb = solve_ik(panda, target), solve_ik(panda, bad)
+    assert not rb.success[2] and rb.reason[2] == Reason.NONFINITE_INPUT and torch.isnan(rb.pos_err[2])
+    keep = torch.tensor([0, 1, 3, 4, 5])
+    torch.testing.assert_close(rb.q[keep], r.q[keep], atol=1e-12, rtol=0)
+    assert torch.equal(rb.success[keep], r.success[keep])
+
+
+def test_ik_batched_equals_loop(panda):
+    target = _goals(12, 13).reshape(3, 4, 4, 4)
+    seeds = Panda.ik_seeds(D64)[:1]
+    r = solve_ik(panda, target, seeds=seeds)
+    assert r.q.shape == (3, 4, 7) and r.success.shape == (3, 4)
+    for i in range(3):
+        for j in range(4):
+            ri = solve_ik(panda, target[i, j], seeds=seeds)
+            assert ri.q.shape == (7,)
+            torch.testing.assert_close(ri.q, r.q[i, j], atol=1e-9, rtol=0)
+            assert bool(ri.success) == bool(r.success[i, j]) and int(ri.iterations) == int(r.iterations[i, j])
+
+
+def test_ik_float32(panda):
+    target = _goals(100, 14, torch.float32)
+    r = solve_ik(panda, target, seeds=Panda.ik_seeds(torch.float32)[:1])
+    assert r.q.dtype == torch.float32 and r.success.double().mean() >= 0.9
+    Tq = panda.fk(r.q[r.success].double())
+    assert ((Tq[:, :3, 3] - target[r.success, :3, 3].double()).norm(dim=-1) < 1.01e-3).all()
+
+
+def test_ik_already_solved_and_bad_inputs(panda):
+    target = panda.fk(Panda.home(D64))
+    r = solve_ik(panda, target)
+    assert bool(r.success) and int(r.iterations) == 0
+    with pytest.raises(ValueError):
+        solve_ik(panda, torch.zeros(3, 3, dtype=D64))
+    with pytest.raises(TypeError):
+        solve_ik(panda, target, q0=Panda.home(torch.float32))
