@@ -262,6 +262,12 @@ def box_qp(
 
     if m == 1:
         x = _box_qp_scalar_x(H, g, lo, hi)
+    elif _enumerate_faces(m, nb, device):
+        # small problems: the exact minimizer by enumerating the faces of the box (below), so a warm start
+        # has nothing to add; the iterations then only certify it (and take over where no face qualifies:
+        # H not positive definite on any face, from the warm start)
+        start = None if x0 is None else _clip(torch.where(fin1, x0, zero), lo, hi)
+        x = _box_qp_enum_x(H, g, lo, hi, start)
     else:
         x = torch.zeros(nb, m, dtype=dtype, device=device) if x0 is None else torch.where(fin1, x0, zero)
         x = _clip(x, lo, hi)
@@ -274,6 +280,9 @@ def box_qp(
         status = torch.where(finite, cert, status)
         status = torch.where(finite & (H[:, 0, 0] <= 0), int(BoxQPStatus.NOT_POSITIVE_DEFINITE), status)
         iters = iters + 1
+    elif _enumerate_faces(m, nb, device) and bool(((res <= kkt_tol) | ~finite).all()):
+        # every enumerated point is certified (the usual case): no iteration (one host sync)
+        status = torch.where(finite, _certified_status(res <= kkt_tol, clamped, 0), status)
     else:
         _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, clamped, max_iter=max_iter,
                  tol=tol, min_rel_improve=min_rel_improve, armijo=armijo, step_dec=step_dec, n_steps=n_steps)
@@ -443,6 +452,84 @@ def _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, cla
         pending = torch.where(stall, int(BoxQPStatus.SMALL_IMPROVEMENT), pending_code)
         pending = torch.where(nodesc, int(BoxQPStatus.NO_DESCENT), pending)
         pending = torch.where(notpd, int(BoxQPStatus.NOT_POSITIVE_DEFINITE), pending)
+
+
+def _enumerate_faces(m: int, nb: int, device: torch.device) -> bool:
+    """Whether :func:`_box_qp_enum_x` solves the batch: 3^m faces of small solves at once beat the
+    iterations' per-call overhead for m = 2 at every batch size, and for m = 3 up to a few hundred problems
+    on CPU (measured: 8 problems 1.6 vs 9.5 ms, 256 8.5 vs 18 ms, 4096 127 vs 109 ms) and on GPUs, where
+    the iterations' host syncs dominate."""
+    return m == 2 or (m == 3 and (device.type != "cpu" or nb <= 1024))
+
+
+def _box_qp_enum_x(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, start: Tensor | None = None) -> Tensor:
+    """The minimizer of a strictly convex box QP with few variables, by enumerating the faces of the box.
+
+    Every face (each variable free, on its lower or on its upper bound: ``3^m`` of them) has one minimizer
+    of ``f`` on its affine hull (the bound variables fixed, the free ones from the free block of ``H``);
+    the box QP's minimizer is the minimizer of the face it lies on, and it is feasible, so it is the
+    feasible face minimizer of lowest ``f``.  All faces are solved at once (a batched solve of the free
+    block padded with the identity).  Faces with an infinite bound, a free block that is not positive
+    definite, or a non-finite solution are skipped; where no face qualifies, ``start`` (default: the
+    projected zero) is returned and :func:`_iterate` decides.
+    """
+    nb, m = g.shape
+    dtype, device = g.dtype, g.device
+    codes = torch.cartesian_prod(*[torch.arange(3, device=device)] * m).reshape(-1, m)  # (F, m): 0 free
+    free = codes == 0  # (F, m)
+    at_lo, at_hi = codes == 1, codes == 2
+    fixed = torch.where(at_lo, lo.unsqueeze(1), torch.where(at_hi, hi.unsqueeze(1), 0.0))  # (nb, F, m)
+    ok = torch.isfinite(fixed).all(-1)  # a face on an infinite bound does not exist
+    fixed = torch.where(ok.unsqueeze(-1), fixed, 0.0)
+    ff = (free.unsqueeze(-1) & free.unsqueeze(-2)).to(dtype)  # (F, m, m)
+    eye = torch.eye(m, dtype=dtype, device=device)
+    Hf = H.unsqueeze(1) * ff + eye * (~free).to(dtype).unsqueeze(-1)  # free block, identity elsewhere
+    H1 = H.unsqueeze(1)
+    rhs = torch.where(free, -(g.unsqueeze(1) + torch.matmul(H1, fixed.unsqueeze(-1)).squeeze(-1)), 0.0)
+    xf, pd = _small_spd_solve(Hf, rhs)
+    x = torch.where(free, xf, fixed)
+    rtol = 8 * torch.finfo(dtype).eps
+    span = torch.where(torch.isfinite(hi - lo), hi - lo, 1.0).unsqueeze(1) + x.abs()
+    feas = ((x >= lo.unsqueeze(1) - rtol * span) & (x <= hi.unsqueeze(1) + rtol * span)).all(-1)
+    ok = ok & pd & feas & torch.isfinite(x).all(-1)
+    x = _clip(x, lo.unsqueeze(1), hi.unsqueeze(1))
+    fval = 0.5 * (x * torch.matmul(H1, x.unsqueeze(-1)).squeeze(-1)).sum(-1) + (g.unsqueeze(1) * x).sum(-1)
+    k = torch.argmin(torch.where(ok, fval, torch.inf), dim=-1)  # (nb,)
+    best = x.gather(1, k.view(nb, 1, 1).expand(nb, 1, m)).squeeze(1)
+    fallback = _clip(torch.zeros_like(g), lo, hi) if start is None else start
+    return torch.where(ok.any(-1, keepdim=True), best, fallback)
+
+
+def _small_spd_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+    """``A⁻¹ b`` for many tiny (m ≤ 3) matrices ``A (..., m, m)`` by a Cholesky factorization written out
+    entry by entry (a few elementwise kernels instead of one LAPACK call per matrix), and whether each
+    ``A`` is positive definite (pivots > 0; where not, the solution is garbage and must be ignored)."""
+    m = A.shape[-1]
+    L: dict = {}
+    pd = torch.ones(A.shape[:-2], dtype=torch.bool, device=A.device)
+    for i in range(m):
+        for j in range(i + 1):
+            v = A[..., i, j]
+            for k in range(j):
+                v = v - L[i, k] * L[j, k]
+            if i == j:
+                pd = pd & (v > 0)
+                L[i, i] = torch.sqrt(torch.where(v > 0, v, 1.0))
+            else:
+                L[i, j] = v / L[j, j]
+    y = []
+    for i in range(m):  # L y = b
+        v = b[..., i]
+        for k in range(i):
+            v = v - L[i, k] * y[k]
+        y.append(v / L[i, i])
+    x: list = [None] * m
+    for i in reversed(range(m)):  # Lᵀ x = y
+        v = y[i]
+        for k in range(i + 1, m):
+            v = v - L[k, i] * x[k]
+        x[i] = v / L[i, i]
+    return torch.stack(x, -1), pd
 
 
 def _box_qp_scalar_x(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
