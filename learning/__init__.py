@@ -5,6 +5,7 @@ Nothing is registered with gymnasium at import: call :func:`register_envs`.  sta
 imported only by :mod:`learning.sb3`.
 """
 
+from learning.bc import Demos, bc_study, collect_demos, train_mlp_policy, train_mpc_cost
 from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
 from learning.evaluate import EvalResult, evaluate
 from learning.policies import MPCExpert, as_policy
@@ -12,4 +13,5 @@ from learning.registration import env_id, register_envs
 from learning.vector import TaskVectorEnv
 
 __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "CartPoleSwingUp",
-           "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert"]
+           "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert", "Demos",
+           "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study"]
