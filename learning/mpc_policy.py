@@ -1,0 +1,294 @@
+"""An MPC-headed stable-baselines3 policy: observation → cost network → differentiable iLQR MPC → action.
+
+:class:`MPCActorCriticPolicy` is an SB3 ``ActorCriticPolicy`` (PPO, A2C) whose mean action is the first
+control of an MPC solve on the task's own model (:class:`controllers.mpc.MPCPolicy`, iLQR with control
+limits ``±u_max``).  A small MLP maps the observation to the parameters of the MPC's cost — positive
+scales of the task's ``mpc_cost`` state and control weights and an offset of its target — and the output
+layer starts at zero, so **the untrained policy is the task's MPC** (cold-started, with this policy's
+horizon and iteration budget).  Gradients of the PPO loss reach the cost network through the implicit
+(or unrolled) iLQR gradients.
+
+How it plugs into SB3 (the recipe of issue 12 §5):
+
+* the ``mlp_extractor`` is :class:`MPCExtractor`: its actor latent *is* the MPC action normalized to the
+  action space, ``u / u_max ∈ [-1, 1]^m``; its critic is a plain MLP on the observation;
+* ``action_net`` is ``nn.Identity`` (the latent is the Gaussian's mean), ``log_std`` a learnable
+  state-independent vector (SB3's ``DiagGaussianDistribution``);
+* ``ortho_init`` is off for the actor (it would overwrite the zero output layer that makes the initial
+  policy the MPC); the critic gets SB3's orthogonal init, as a plain ``MlpPolicy`` does;
+* the optimizer is built after the modules are replaced.
+
+**Stateless.**  Every call solves cold (zero initial controls) from the observation alone: no warm start
+is kept between calls, since PPO recomputes the log-probabilities of stored observations during its
+updates and they must equal those of the rollout.  The state the MPC plans from is
+``task.state_from_obs(obs)`` with its angle components (:func:`learning.policies.angle_dims`) taken
+within ``±π`` of the cost's target — the stateless counterpart of :class:`~learning.policies.MPCAdapter`'s
+hysteresis.  Any batch size works; the solve is float32 (the dtype of SB3's observations).
+
+Off-policy algorithms (SAC, TD3): not provided.  SAC's actor outputs the mean of a *tanh-squashed*
+Gaussian, so the MPC action would enter as ``atanh(clip(u/u_max, ±(1-ε)))`` — infinite slope where the
+MPC saturates, which a bang-bang swing-up does most of the time, so the gradient reaching the cost
+network vanishes there (``d/dθ atanh(clip(·))`` is zero when clipped) or explodes next to it.  And the
+cost is prohibitive: SAC/TD3 run one actor forward *and backward* on a batch of 256 (plus a no-grad
+forward for the target) per environment step, i.e. ~20 k differentiable MPC solves of batch 256 for 20 k
+steps, against ``n_epochs · steps / batch_size`` (1.6 k for 10 epochs of 128) for PPO.
+
+Limitation: a control on its bound is fixed there in the implicit (and, through the clamp, the unrolled)
+gradient, so the PPO gradient reaches the cost network only through the elements whose first MPC control
+is not saturated; a swing-up that is bang-bang far from the goal learns only near it.
+
+Not exported from :mod:`learning` (SB3 is imported here at module level); import it as
+``from learning.mpc_policy import MPCActorCriticPolicy, make_mpc_ppo``.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+from typing import Any
+
+import numpy as np
+import torch
+from gymnasium import spaces
+from stable_baselines3 import PPO
+from stable_baselines3.common.distributions import DiagGaussianDistribution
+from stable_baselines3.common.policies import ActorCriticPolicy
+from torch import Tensor, nn
+
+from controllers.costs import QuadraticCost
+from controllers.ilqr import ILQROptions
+from controllers.mpc import MPCPolicy
+from learning.envs.single import make_task
+from learning.envs.task import Task
+from learning.policies import angle_dims
+
+__all__ = ["MPCActorCriticPolicy", "MPCExtractor", "LearnedTaskCost", "make_mpc_ppo", "DEFAULT_MPC_HORIZON"]
+
+#: planning horizon of the MPC head by task name (shorter than the expert's: every call is a cold solve)
+DEFAULT_MPC_HORIZON = {"PendulumSwingUp": 20, "CartPoleSwingUp": 25, "CarParking": 25, "BicopterHover": 15,
+                       "ArmReach": 20}
+
+
+def _mlp(sizes: list[int], activation_fn: type[nn.Module]) -> list[nn.Module]:
+    layers: list[nn.Module] = []
+    for a, b in zip(sizes[:-1], sizes[1:]):
+        layers += [nn.Linear(a, b), activation_fn()]
+    return layers
+
+
+class LearnedTaskCost(nn.Module):
+    """The task's quadratic MPC cost, re-weighted per observation by a network (a cost module for
+    :class:`~controllers.mpc.MPCPolicy`: ``forward(x (*B, n)) -> QuadraticCost``).
+
+    With ``s = net(observe(x))`` split into ``(s_q (n), s_r (m), s_t (n))``::
+
+        Q_t = D_q Q_t⁰ D_q,   D_q = diag(exp(½ ρ tanh s_q))        (every t, the terminal one included)
+        R   = D_r R⁰ D_r,     D_r = diag(exp(½ ρ tanh s_r))
+        x*  = x*⁰ + δ tanh s_t
+
+    ``Q⁰, R⁰, x*⁰`` from ``task.mpc_cost(horizon)`` (``D Q D`` keeps a non-diagonal weight symmetric
+    PSD); the weights move by a factor of at most ``exp(±ρ)``, the target by at most ``δ`` per component.
+    The net's last layer is zero at construction, so the cost starts as the task's.  The network sees
+    ``task.observe(x)`` (the observation the state was recovered from: observations are full-state).
+
+    Args:
+        task: the task (its ``mpc_cost`` must be a :class:`~controllers.costs.QuadraticCost`).
+        horizon: planning horizon.
+        net_arch: hidden sizes of the network.
+        log_scale_range: ρ (0 keeps the weights fixed).
+        target_offset: δ, a float or an ``(n,)`` sequence (0 keeps the target fixed).
+        activation_fn: of the hidden layers.
+    """
+
+    def __init__(self, task: Task, horizon: int, net_arch: list[int] = (64, 64), *,
+                 log_scale_range: float = 2.0, target_offset: float | list[float] = 0.5,
+                 activation_fn: type[nn.Module] = nn.Tanh):
+        super().__init__()
+        base = task.mpc_cost(horizon, dtype=torch.float32)
+        if not isinstance(base, QuadraticCost):
+            raise TypeError(f"LearnedTaskCost: task {task.name} has a {type(base).__name__} MPC cost; only a "
+                            "QuadraticCost can be re-weighted")
+        if base.N is not None or base.q is not None or base.r is not None:
+            raise ValueError("LearnedTaskCost: the task's cost has cross or linear terms; only Q, R, x_ref, "
+                             "u_ref are supported")
+        self.task, self.horizon = task, horizon
+        n, m = task.n, task.m
+        Q = base.Q if base.Q.dim() == 3 else base.Q.expand(horizon + 1, n, n)
+        R = base.R if base.R.dim() == 3 else base.R.expand(1, m, m)
+        self.register_buffer("Q0", Q.detach().clone())
+        self.register_buffer("R0", R.detach().clone())
+        x_ref = base.x_ref if base.x_ref is not None else torch.zeros(n)
+        self.register_buffer("x_ref0", x_ref.detach().clone().reshape(-1, n)[-1])
+        u_ref = base.u_ref
+        self.register_buffer("u_ref0", None if u_ref is None else u_ref.detach().clone())
+        self.log_scale_range = float(log_scale_range)
+        off = torch.as_tensor(target_offset, dtype=torch.float32).expand(n).clone()
+        self.register_buffer("target_offset", off)
+        self.n_out = 2 * n + m
+        sizes = [task.obs_dim, *net_arch]
+        self.net = nn.Sequential(*_mlp(sizes, activation_fn), nn.Linear(sizes[-1], self.n_out))
+        nn.init.zeros_(self.net[-1].weight)
+        nn.init.zeros_(self.net[-1].bias)
+
+    def parameters_from_obs(self, obs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``(q_scale (*B, n), r_scale (*B, m), target (*B, n))`` for observations ``(*B, obs_dim)``."""
+        n, m = self.task.n, self.task.m
+        s = torch.tanh(self.net(obs))
+        q_scale = torch.exp(self.log_scale_range * s[..., :n])
+        r_scale = torch.exp(self.log_scale_range * s[..., n:n + m])
+        target = self.x_ref0 + self.target_offset * s[..., n + m:]
+        return q_scale, r_scale, target
+
+    def forward(self, x: Tensor) -> QuadraticCost:
+        q_scale, r_scale, target = self.parameters_from_obs(self.task.observe(x))
+        dq, dr = q_scale.sqrt(), r_scale.sqrt()
+        B = x.shape[:-1]
+        Q = self.Q0 * (dq[..., None, :, None] * dq[..., None, None, :])  # (*B, T+1, n, n)
+        R = self.R0 * (dr[..., None, :, None] * dr[..., None, None, :])  # (*B, 1 or T, m, m)
+        return QuadraticCost(Q=Q, R=R, x_ref=target.reshape(*B, 1, -1), u_ref=self.u_ref0, check=False)
+
+
+class MPCExtractor(nn.Module):
+    """SB3 ``mlp_extractor`` whose actor latent is the MPC action ``u / u_max`` and whose critic latent
+    is an MLP of the observation (``forward``, ``forward_actor``, ``forward_critic``, ``latent_dim_pi``,
+    ``latent_dim_vf`` as SB3's ``MlpExtractor``).  Stateless: every call is a cold solve.
+
+    Args:
+        task: the task (its ``system`` is the MPC's model, ``u_max`` its limits).
+        features_dim: size of the observation features (SB3's ``FlattenExtractor``: ``obs_dim``).
+        horizon, max_iter, grad, options: of the MPC (``options`` overrides ``max_iter``).
+        cost_net_arch, log_scale_range, target_offset: of :class:`LearnedTaskCost`.
+        vf_arch, activation_fn: the critic MLP.
+    """
+
+    def __init__(self, task: Task, features_dim: int, *, horizon: int, max_iter: int = 5,
+                 grad: str = "implicit", options: ILQROptions | None = None,
+                 cost_net_arch: list[int] = (64, 64), log_scale_range: float = 2.0,
+                 target_offset: float | list[float] = 0.5, vf_arch: list[int] = (64, 64),
+                 activation_fn: type[nn.Module] = nn.Tanh):
+        super().__init__()
+        if features_dim != task.obs_dim:
+            raise ValueError(f"MPCExtractor: features of size {features_dim}, expected the task's "
+                             f"observation ({task.obs_dim}); use SB3's FlattenExtractor")
+        self.task = task
+        cost = LearnedTaskCost(task, horizon, list(cost_net_arch), log_scale_range=log_scale_range,
+                               target_offset=target_offset, activation_fn=activation_fn)
+        umax = torch.tensor(task.u_max(), dtype=torch.float32)
+        opts = options if options is not None else ILQROptions(max_iter=max_iter)
+        self.mpc = MPCPolicy(task.system, horizon, cost, u_lower=-umax, u_upper=umax, grad=grad, options=opts)
+        self.register_buffer("u_max", umax)
+        dims = torch.zeros(task.n, dtype=torch.bool)
+        dims[angle_dims(task)] = True
+        self.register_buffer("angle_mask", dims)
+        vf = list(vf_arch)
+        self.value_net = nn.Sequential(*_mlp([features_dim, *vf], activation_fn))
+        self.latent_dim_pi = task.m
+        self.latent_dim_vf = vf[-1] if vf else features_dim
+
+    def state(self, obs: Tensor) -> Tensor:
+        """The state the MPC plans from: ``task.state_from_obs`` with angles within ``±π`` of the
+        (untrained) cost target."""
+        x = self.task.state_from_obs(obs)
+        c = self.mpc.cost.x_ref0
+        centered = torch.remainder(x - c + math.pi, 2 * math.pi) - math.pi + c
+        return torch.where(self.angle_mask, centered, x)
+
+    def forward_actor(self, features: Tensor) -> Tensor:
+        u, _ = self.mpc(self.state(features))  # no warm start in, the one returned is dropped
+        a = u / self.u_max
+        return torch.where(torch.isfinite(a), a, torch.zeros((), dtype=a.dtype, device=a.device))
+
+    def forward_critic(self, features: Tensor) -> Tensor:
+        return self.value_net(features)
+
+    def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        return self.forward_actor(features), self.forward_critic(features)
+
+
+class MPCActorCriticPolicy(ActorCriticPolicy):
+    """SB3 actor-critic policy with an MPC head (module docstring); use with PPO or A2C.
+
+    Keyword args (besides ``ActorCriticPolicy``'s; ``net_arch`` is the critic's: a list, or a dict whose
+    ``"vf"`` entry is used):
+        task: a :class:`~learning.envs.task.Task` or its name (required).
+        horizon: MPC horizon (default :data:`DEFAULT_MPC_HORIZON`, else 20).
+        max_iter: iLQR iterations per call (cold start every call).
+        grad: ``"implicit"`` (default) or ``"unrolled"`` gradients through the solve.
+        ilqr_options: a full :class:`~controllers.ilqr.ILQROptions` (overrides ``max_iter``).
+        cost_net_arch, log_scale_range, target_offset: of :class:`LearnedTaskCost`.
+        log_std_init: initial log standard deviation of the normalized action (default -1: the initial
+            policy is a good controller, so exploration starts smaller than SB3's 0).
+    """
+
+    def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, lr_schedule, *,
+                 task: Task | str, horizon: int | None = None, max_iter: int = 5, grad: str = "implicit",
+                 ilqr_options: ILQROptions | None = None, cost_net_arch: list[int] | None = None,
+                 log_scale_range: float = 2.0, target_offset: float | list[float] = 0.5,
+                 log_std_init: float = -1.0, ortho_init: bool = False, use_sde: bool = False, **kwargs):
+        if ortho_init:
+            raise ValueError("MPCActorCriticPolicy: ortho_init=True would overwrite the cost network's zero "
+                             "output layer (the critic gets orthogonal init anyway)")
+        if use_sde:
+            raise ValueError("MPCActorCriticPolicy: gSDE is not supported (Gaussian noise on the MPC action)")
+        if str(grad) not in ("implicit", "unrolled", "GradMode.IMPLICIT", "GradMode.UNROLLED"):
+            raise ValueError(f"MPCActorCriticPolicy: grad must be 'implicit' or 'unrolled', got {grad!r}")
+        t = make_task(task)
+        if not isinstance(action_space, spaces.Box) or action_space.shape != (t.m,):
+            raise ValueError(f"MPCActorCriticPolicy: expected a Box action space of shape ({t.m},), got "
+                             f"{action_space}")
+        self.task_arg = task
+        self.mpc_task = t
+        self.horizon = horizon if horizon is not None else DEFAULT_MPC_HORIZON.get(t.name, 20)
+        self.max_iter, self.grad, self.ilqr_options = max_iter, grad, ilqr_options
+        self.cost_net_arch = [64, 64] if cost_net_arch is None else list(cost_net_arch)
+        self.log_scale_range, self.target_offset = log_scale_range, target_offset
+        super().__init__(observation_space, action_space, lr_schedule, ortho_init=False, use_sde=False,
+                         log_std_init=log_std_init, **kwargs)
+
+    def _build_mlp_extractor(self) -> None:
+        arch = self.net_arch
+        vf = arch.get("vf", [64, 64]) if isinstance(arch, dict) else list(arch)
+        self.mlp_extractor = MPCExtractor(
+            self.mpc_task, self.features_dim, horizon=self.horizon, max_iter=self.max_iter, grad=self.grad,
+            options=self.ilqr_options, cost_net_arch=self.cost_net_arch, log_scale_range=self.log_scale_range,
+            target_offset=self.target_offset, vf_arch=vf, activation_fn=self.activation_fn)
+
+    def _build(self, lr_schedule) -> None:
+        super()._build(lr_schedule)  # ortho_init is False: nothing initialized there
+        if not isinstance(self.action_dist, DiagGaussianDistribution):
+            raise ValueError("MPCActorCriticPolicy: only a Gaussian action distribution is supported")
+        self.action_net = nn.Identity()  # the latent is the mean action
+        # the critic as SB3's MlpPolicy initializes it
+        self.mlp_extractor.value_net.apply(partial(self.init_weights, gain=np.sqrt(2)))
+        self.value_net.apply(partial(self.init_weights, gain=1.0))
+        self.optimizer = self.optimizer_class(self.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.pop("ortho_init", None)
+        data.pop("use_sde", None)
+        data.update(task=self.task_arg, horizon=self.horizon, max_iter=self.max_iter, grad=self.grad,
+                    ilqr_options=self.ilqr_options, cost_net_arch=self.cost_net_arch,
+                    log_scale_range=self.log_scale_range, target_offset=self.target_offset)
+        return data
+
+
+def make_mpc_ppo(task: Task | str = "PendulumSwingUp", *, num_envs: int = 8, env_kwargs: dict | None = None,
+                 policy_kwargs: dict | None = None, **ppo_kwargs) -> PPO:
+    """A PPO model with an :class:`MPCActorCriticPolicy` on :class:`~learning.sb3.SB3VecEnv` (float32).
+
+    Args:
+        task: task instance or name.
+        num_envs: environments of the vector env.
+        env_kwargs: more arguments of :class:`~learning.sb3.SB3VecEnv` (``max_episode_steps``...).
+        policy_kwargs: of the policy (``horizon``, ``max_iter``, ``grad``...; ``task`` is set here).
+        **ppo_kwargs: of ``PPO`` (``n_steps``, ``batch_size``, ``learning_rate``, ``seed``, ``device``...).
+    """
+    from learning.sb3 import SB3VecEnv
+
+    t = make_task(task)
+    env = SB3VecEnv(t, num_envs, **(env_kwargs or {}))
+    pk = dict(policy_kwargs or {})
+    pk["task"] = task
+    ppo_kwargs.setdefault("device", "cpu")
+    return PPO(MPCActorCriticPolicy, env, policy_kwargs=pk, **ppo_kwargs)
