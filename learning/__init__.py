@@ -2,7 +2,8 @@
 baselines built on :mod:`controllers` (see ARCHITECTURE.md).
 
 Nothing is registered with gymnasium at import: call :func:`register_envs`.  stable-baselines3 is
-imported only by :mod:`learning.sb3`.
+imported only by :mod:`learning.sb3`, :mod:`learning.mpc_policy` and (inside its functions)
+:mod:`learning.baselines`, none of which this package imports.
 """
 
 from learning.bc import Demos, bc_study, collect_demos, train_mlp_policy, train_mpc_cost

@@ -1,0 +1,395 @@
+"""RL baselines: stable-baselines3 PPO and SAC on the batched task envs, with per-task defaults, learning
+curves measured by :func:`learning.evaluate`, and weights saved in a form that loads safely.
+
+* :data:`PPO_DEFAULTS` / :data:`SAC_DEFAULTS`: hyperparameters by task name (``"*"`` the fallback);
+  ``n_envs`` is the number of training environments, the rest are keyword arguments of the SB3 class.
+  PendulumSwingUp uses rl-baselines3-zoo's tuned Pendulum-v1 settings (our task has Pendulum-v1's
+  physics, reward and horizon; actions are normalized to ``[-1, 1]``).
+* :func:`make_agent` builds an agent on an :class:`~learning.sb3.SB3VecEnv` (a natively batched env).
+* :func:`train` trains within a step budget and evaluates the deterministic policy every ``eval_every``
+  environment steps on fixed held-out seeds (:func:`eval_seeds`; batched), giving a learning curve.
+  It saves three files per run: ``model.zip`` (SB3's own format), ``policy.pt`` (the policy's plain
+  ``state_dict``, loadable with ``torch.load(path, weights_only=True)``) and ``agent.json`` (algorithm,
+  task, seed, hyperparameters, curve, timings).
+* :func:`load_agent` rebuilds the agent from ``policy.pt`` + ``agent.json`` (no pickle involved).  It loads
+  an SB3 ``.zip`` only when asked to explicitly (``trust_zip=True``): **SB3 zip files unpickle Python
+  objects, so a model file from an untrusted source can execute arbitrary code when loaded.**
+
+Seeds: training seed ``s`` seeds SB3 (torch, numpy, the action space) with ``s`` and gives training
+environment ``i`` the env seed ``1000·s + i``; evaluation episodes use the env seeds ``10⁶ + j``, which
+training never uses (for ``s < 1000`` and fewer than 1000 training environments).
+
+TensorBoard: with ``tensorboard=True`` SB3 logs to ``out_dir/tb`` when the ``tensorboard`` package is
+importable (it is not a dependency of this project); otherwise logging is skipped and
+``TrainResult.notes`` says so.  The evaluation curve is logged there too (``eval/mean_return``,
+``eval/success_rate``).
+
+stable-baselines3 is imported only inside the functions.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from learning.envs.single import make_task
+from learning.envs.task import Task
+
+__all__ = ["ALGOS", "PPO_DEFAULTS", "SAC_DEFAULTS", "DEFAULT_BUDGETS", "hyperparams", "default_budget",
+           "eval_seeds", "train_env_seed", "make_agent", "train", "TrainResult", "load_agent",
+           "save_agent", "read_agent_meta", "steps_to_match", "mean_curve", "tensorboard_available",
+           "EVAL_SEED0"]
+
+ALGOS = ("ppo", "sac")
+
+#: first env seed of the held-out evaluation episodes
+EVAL_SEED0 = 10**6
+#: training environments of training seed ``s`` use the env seeds ``TRAIN_SEED_STRIDE·s + i``
+TRAIN_SEED_STRIDE = 1000
+
+#: PPO hyperparameters by task name (``"*"``: fallback); ``n_envs`` = training environments
+PPO_DEFAULTS: dict[str, dict[str, Any]] = {
+    # rl-baselines3-zoo's tuned Pendulum-v1 settings (reported there: -172 ± 104 after 1e5 steps)
+    "PendulumSwingUp": dict(n_envs=4, n_steps=1024, batch_size=64, gae_lambda=0.95, gamma=0.9, n_epochs=10,
+                            ent_coef=0.0, learning_rate=1e-3, clip_range=0.2, use_sde=True,
+                            sde_sample_freq=4),
+    # reward in [0, 1] per step over 200 steps: a longer discount than the pendulum's
+    "CartPoleSwingUp": dict(n_envs=8, n_steps=256, batch_size=128, gae_lambda=0.95, gamma=0.98, n_epochs=10,
+                            ent_coef=0.0, learning_rate=3e-4, clip_range=0.2, use_sde=True,
+                            sde_sample_freq=4),
+    "*": dict(n_envs=8, n_steps=256, batch_size=128, gae_lambda=0.95, gamma=0.98, n_epochs=10,
+              ent_coef=0.0, learning_rate=3e-4, clip_range=0.2),
+}
+
+#: SAC hyperparameters by task name (``"*"``: fallback); unnamed ones are SB3's defaults
+SAC_DEFAULTS: dict[str, dict[str, Any]] = {
+    # rl-baselines3-zoo's tuned Pendulum-v1 settings (reported there: -157 ± 89 after 2e4 steps)
+    "PendulumSwingUp": dict(n_envs=1, learning_rate=1e-3),
+    "CartPoleSwingUp": dict(n_envs=1, learning_rate=1e-3, gamma=0.98),
+    "*": dict(n_envs=1, learning_rate=1e-3, gamma=0.98),
+}
+
+#: default training budgets (environment steps per training seed) by task name, chosen so that
+#: ``liecontrol compare TASK`` with 3 seeds finishes in at most about 15 min on a loaded 2-core CPU (SAC
+#: does one gradient step per environment step: 25-60 steps/s there; PPO 700-1300 steps/s)
+DEFAULT_BUDGETS: dict[str, dict[str, int]] = {
+    # PPO matched the MPC's success by ~29k steps in every seed (measured); rl-zoo's figure is at 1e5
+    "PendulumSwingUp": {"ppo": 60_000, "sac": 5_000},
+    "CartPoleSwingUp": {"ppo": 100_000, "sac": 6_000},
+    "*": {"ppo": 50_000, "sac": 4_000},
+}
+
+
+def _algo(algo: str) -> str:
+    a = str(algo).lower()
+    if a not in ALGOS:
+        raise ValueError(f"argument 'algo' must be one of {list(ALGOS)}, got {algo!r}")
+    return a
+
+
+def hyperparams(algo: str, task: Task | str) -> dict[str, Any]:
+    """A copy of the default hyperparameters of ``algo`` on ``task`` (its name's entry, else ``"*"``)."""
+    table = PPO_DEFAULTS if _algo(algo) == "ppo" else SAC_DEFAULTS
+    name = make_task(task).name
+    return dict(table.get(name, table["*"]))
+
+
+def default_budget(algo: str, task: Task | str) -> int:
+    """Default training budget (environment steps) of ``algo`` on ``task``."""
+    name = make_task(task).name
+    return int(DEFAULT_BUDGETS.get(name, DEFAULT_BUDGETS["*"])[_algo(algo)])
+
+
+def eval_seeds(episodes: int) -> list[int]:
+    """The env seeds of ``episodes`` held-out evaluation episodes."""
+    return [EVAL_SEED0 + j for j in range(int(episodes))]
+
+
+def train_env_seed(seed: int) -> int:
+    """The env seed of training environment 0 for training seed ``seed`` (environment ``i``: ``+ i``)."""
+    return TRAIN_SEED_STRIDE * int(seed)
+
+
+def tensorboard_available() -> bool:
+    """Whether SB3 can log to TensorBoard here (the ``tensorboard`` package is importable)."""
+    try:
+        from stable_baselines3.common.logger import SummaryWriter
+    except ImportError:
+        return False
+    return SummaryWriter is not None
+
+
+def _sb3_class(algo: str):
+    from stable_baselines3 import PPO, SAC
+
+    return PPO if _algo(algo) == "ppo" else SAC
+
+
+def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None = None,
+               tensorboard_log: str | Path | None = None, device: str = "cpu",
+               params: dict[str, Any] | None = None):
+    """A fresh SB3 agent (``PPO`` or ``SAC``, ``MlpPolicy``) on ``num_envs`` batched training environments
+    of ``task`` (an :class:`~learning.sb3.SB3VecEnv` in a ``VecMonitor``).
+
+    Args:
+        algo: ``"ppo"`` or ``"sac"``.
+        task: a :class:`Task` or its name.
+        seed: training seed (module docstring for the env seeds it implies).
+        num_envs: training environments (default: the hyperparameters' ``n_envs``).
+        tensorboard_log: folder for SB3's TensorBoard logs (needs the ``tensorboard`` package).
+        device: torch device of the networks.
+        params: hyperparameters (default :func:`hyperparams`); ``n_envs`` is taken out of them.
+    """
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from learning.sb3 import SB3VecEnv
+
+    task = make_task(task)
+    kw = hyperparams(algo, task) if params is None else dict(params)
+    n = int(kw.pop("n_envs", 1) if num_envs is None else num_envs)
+    kw.pop("n_envs", None)
+    env = VecMonitor(SB3VecEnv(task, n))
+    model = _sb3_class(algo)("MlpPolicy", env, seed=int(seed), device=device,
+                             tensorboard_log=None if tensorboard_log is None else str(tensorboard_log),
+                             verbose=0, **kw)
+    model.env.seed(train_env_seed(seed))  # SB3 seeded the envs with `seed`; ours are disjoint per seed
+    return model
+
+
+@dataclass
+class TrainResult:
+    """What :func:`train` did: the trained ``model``, its learning curve (``steps``: environment steps at
+    each evaluation, ``returns``: mean evaluation return, ``success``: success rate), the wall time of
+    training alone (evaluations excluded) and of the evaluations, the saved files and notes."""
+
+    model: Any
+    algo: str
+    task: str
+    seed: int
+    steps: list[int]
+    returns: list[float]
+    success: list[float]
+    train_time_s: float
+    eval_time_s: float
+    num_timesteps: int
+    params: dict[str, Any]
+    paths: dict[str, str] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+
+    def curve(self) -> dict[str, list]:
+        return {"steps": list(self.steps), "returns": list(self.returns), "success": list(self.success)}
+
+
+def _curve_point(model, task: Task, seeds: list[int]) -> tuple[float, float]:
+    from learning.evaluate import evaluate
+
+    r = evaluate(model, task, seeds=seeds, num_envs=len(seeds), dtype=torch.float32, progress=False,
+                 timing_batch1=False)
+    return float(np.mean(r.returns)), float(np.mean(r.success))
+
+
+def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_every: int | None = None,
+          eval_episodes: int = 16, out_dir: str | Path | None = None, *, num_envs: int | None = None,
+          params: dict[str, Any] | None = None, tensorboard: bool = True, device: str = "cpu",
+          log=None) -> TrainResult:
+    """Train ``algo`` on ``task`` for ``budget_steps`` environment steps and record its learning curve.
+
+    The deterministic policy is evaluated (:func:`learning.evaluate`, all ``eval_episodes`` episodes in
+    one batch, seeds :func:`eval_seeds`) before training, every ``eval_every`` steps (default: a tenth of
+    the budget; at the start of the first rollout past each multiple, i.e. after the updates of the
+    previous one) and at the end.  A PPO budget below one rollout (``n_steps · n_envs``) shortens the rollout
+    to fit.  SB3 counts steps per batch of environments, so an evaluation happens at
+    the first multiple of ``num_envs`` past each ``k·eval_every``, and PPO ends at its first full rollout
+    past the budget.  With ``out_dir``, ``model.zip``, ``policy.pt`` and ``agent.json`` are written there
+    (:func:`save_agent`) and TensorBoard logs go to ``out_dir/tb`` when possible.  ``log(str)`` receives a
+    line per evaluation.
+    """
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    algo = _algo(algo)
+    task = make_task(task)
+    budget_steps = int(budget_steps)
+    if budget_steps < 1:
+        raise ValueError(f"train: argument 'budget_steps' must be a positive int, got {budget_steps}")
+    every = max(1, budget_steps // 10) if eval_every is None else int(eval_every)
+    if every < 1:
+        raise ValueError(f"train: argument 'eval_every' must be a positive int, got {eval_every}")
+    seeds = eval_seeds(eval_episodes)
+    kw = hyperparams(algo, task) if params is None else dict(params)
+    if num_envs is not None:
+        kw["n_envs"] = int(num_envs)
+    notes: list[str] = []
+    if algo == "ppo":
+        n_envs, n_steps = int(kw.get("n_envs", 1)), int(kw.get("n_steps", 2048))
+        if n_envs * n_steps > budget_steps:  # a budget below one rollout: shorter rollouts, not overshoot
+            kw["n_steps"] = max(2, budget_steps // n_envs)
+            kw["batch_size"] = min(int(kw.get("batch_size", 64)), kw["n_steps"] * n_envs)
+            notes.append(f"PPO rollout shortened to n_steps={kw['n_steps']} to fit the budget")
+    tb = None
+    if tensorboard and out_dir is not None:
+        if tensorboard_available():
+            tb = Path(out_dir) / "tb"
+        else:
+            notes.append("TensorBoard logging skipped: the 'tensorboard' package is not installed")
+    model = make_agent(algo, task, seed, tensorboard_log=tb, device=device, params=kw)
+    curve: dict[str, list] = {"steps": [], "returns": [], "success": []}
+    clock = {"eval": 0.0}
+
+    def point(steps: int) -> None:
+        t0 = time.perf_counter()
+        ret, succ = _curve_point(model, task, seeds)
+        clock["eval"] += time.perf_counter() - t0
+        curve["steps"].append(int(steps))
+        curve["returns"].append(ret)
+        curve["success"].append(succ)
+        if log is not None:
+            log(f"{task.name} {algo} seed {seed}: {steps} steps, eval return {ret:.1f}, success {succ:.2f}")
+
+    class _Curve(BaseCallback):
+        def __init__(self):
+            super().__init__()
+            self.next = every
+
+        def _on_rollout_start(self) -> None:
+            # here the updates that follow the previous rollout are done: the policy is the one trained
+            # on exactly num_timesteps steps (evaluating in _on_step would see PPO's pre-update policy)
+            if self.num_timesteps >= self.next:
+                point(self.num_timesteps)
+                self.logger.record("eval/mean_return", curve["returns"][-1])
+                self.logger.record("eval/success_rate", curve["success"][-1])
+                while self.next <= self.num_timesteps:
+                    self.next += every
+
+        def _on_step(self) -> bool:
+            return True
+
+    point(0)
+    e0, t0 = clock["eval"], time.perf_counter()
+    model.learn(total_timesteps=budget_steps, callback=_Curve(), tb_log_name=f"{algo}_seed{seed}")
+    wall = time.perf_counter() - t0
+    train_time = wall - (clock["eval"] - e0)  # the evaluations during training are not training time
+    if curve["steps"][-1] == model.num_timesteps:  # evaluated before the last update: again, after it
+        for k in curve:
+            curve[k].pop()
+    point(model.num_timesteps)
+    res = TrainResult(model=model, algo=algo, task=task.name, seed=int(seed), steps=curve["steps"],
+                      returns=curve["returns"], success=curve["success"], train_time_s=train_time,
+                      eval_time_s=clock["eval"], num_timesteps=int(model.num_timesteps), params=kw,
+                      notes=notes)
+    if out_dir is not None:
+        res.paths = save_agent(res, out_dir, budget_steps=budget_steps, eval_episodes=eval_episodes)
+    return res
+
+
+def _jsonable(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _jsonable(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_jsonable(x) for x in v]
+    if isinstance(v, (np.bool_, bool)):
+        return bool(v)
+    if isinstance(v, (np.integer, int)):
+        return int(v)
+    if isinstance(v, (np.floating, float)):
+        return float(v) if math.isfinite(v) else None
+    if v is None or isinstance(v, str):
+        return v
+    raise TypeError(f"save_agent: hyperparameter value {v!r} is not JSON-serializable (only numbers, "
+                    "strings, lists and dicts can be rebuilt without pickle)")
+
+
+def save_agent(res: TrainResult, out_dir: str | Path, **extra) -> dict[str, str]:
+    """Write ``model.zip`` (SB3's format), ``policy.pt`` (``model.policy.state_dict()``, plain tensors) and
+    ``agent.json`` (everything :func:`load_agent` needs to rebuild the agent, plus the curve and timings)
+    into ``out_dir``; returns their paths."""
+    d = Path(out_dir)
+    d.mkdir(parents=True, exist_ok=True)
+    paths = {"zip": str(d / "model.zip"), "pt": str(d / "policy.pt"), "json": str(d / "agent.json")}
+    res.model.save(paths["zip"])
+    state = {k: v.detach().cpu().clone() for k, v in res.model.policy.state_dict().items()}
+    torch.save(state, paths["pt"])
+    meta = {"algo": res.algo, "task": res.task, "seed": res.seed, "params": res.params,
+            "num_timesteps": res.num_timesteps, "train_time_s": res.train_time_s,
+            "eval_time_s": res.eval_time_s, "curve": res.curve(), "notes": res.notes, **extra}
+    Path(paths["json"]).write_text(json.dumps(_jsonable(meta), indent=1, allow_nan=False) + "\n")
+    return paths
+
+
+def read_agent_meta(path: str | Path) -> dict[str, Any]:
+    """The ``agent.json`` next to (or in) ``path``."""
+    p = Path(path)
+    meta = (p if p.is_dir() else p.parent) / "agent.json"
+    if not meta.is_file():
+        raise FileNotFoundError(f"no agent.json at {meta} (written by learning.baselines.train)")
+    return json.loads(meta.read_text())
+
+
+def load_agent(path: str | Path, algo: str | None = None, task: Task | str | None = None, *,
+               trust_zip: bool = False, device: str = "cpu"):
+    """The agent saved by :func:`train` in ``path`` (its folder or its ``policy.pt``), rebuilt safely.
+
+    The agent is built afresh by :func:`make_agent` from the hyperparameters in ``agent.json`` and its
+    policy weights are read with ``torch.load(..., weights_only=True)``: plain tensors, no code runs.
+
+    ``path`` may instead name an SB3 ``.zip``; it is loaded only with ``trust_zip=True``.  **Warning:**
+    SB3 zip files contain pickled Python objects that ``load`` unpickles, so a model file from an
+    untrusted source can execute arbitrary code on your machine — load only zips you made yourself.
+    ``algo`` (and ``task``) are needed for a zip without an ``agent.json`` beside it.
+    """
+    p = Path(path)
+    if p.suffix == ".zip":
+        if not trust_zip:
+            raise ValueError(f"load_agent: refusing to load the SB3 zip {p} without trust_zip=True: SB3 "
+                             "unpickles objects from it, which can execute code; load the safe policy.pt "
+                             "instead, or pass trust_zip=True for a file you made yourself")
+        if algo is None:
+            algo = read_agent_meta(p)["algo"]
+        from learning.sb3 import SB3VecEnv
+
+        env = None if task is None else SB3VecEnv(make_task(task), 1)
+        return _sb3_class(algo).load(str(p), env=env, device=device)
+    pt = p / "policy.pt" if p.is_dir() else p
+    meta = read_agent_meta(pt)
+    algo = meta["algo"] if algo is None else _algo(algo)
+    if algo != meta["algo"]:
+        raise ValueError(f"load_agent: {pt} holds a {meta['algo']} agent, not {algo}")
+    task = make_task(meta["task"] if task is None else task)
+    if task.name != meta["task"]:
+        raise ValueError(f"load_agent: {pt} was trained on {meta['task']}, not {task.name}")
+    model = make_agent(algo, task, int(meta.get("seed", 0)), device=device, params=meta["params"])
+    state = torch.load(pt, map_location=device, weights_only=True)
+    model.policy.load_state_dict(state)
+    model.num_timesteps = int(meta.get("num_timesteps", 0))
+    return model
+
+
+def mean_curve(curves: list[dict[str, list]], key: str = "returns") -> tuple[np.ndarray, np.ndarray,
+                                                                               np.ndarray, np.ndarray]:
+    """``(steps, mean, min, max)`` of ``key`` over several curves, on the steps they all have."""
+    if not curves:
+        raise ValueError("mean_curve: no curves")
+    common = sorted(set.intersection(*(set(int(s) for s in c["steps"]) for c in curves)))
+    rows = []
+    for c in curves:
+        at = {int(s): float(v) for s, v in zip(c["steps"], c[key])}
+        rows.append([at[s] for s in common])
+    v = np.asarray(rows, dtype=np.float64).reshape(len(curves), len(common))
+    return np.asarray(common, dtype=np.int64), v.mean(0), v.min(0), v.max(0)
+
+
+def steps_to_match(steps, values, target: float, tol: float = 1e-9) -> int | None:
+    """The first of ``steps`` at which ``values`` reaches ``target`` (``value ≥ target − tol``), or
+    ``None`` when it never does (or ``target`` is not finite)."""
+    if target is None or not math.isfinite(float(target)):
+        return None
+    for s, v in zip(steps, values):
+        if v is not None and math.isfinite(float(v)) and float(v) >= float(target) - tol:
+            return int(s)
+    return None

@@ -1,0 +1,456 @@
+"""``liecontrol compare ENV``: the MPC expert (zero training) next to PPO and SAC (stable-baselines3) trained
+within a step budget, all evaluated on the same held-out episodes.
+
+For each training seed and algorithm the agent is trained by :func:`learning.baselines.train` (or, with
+``--load DIR``, rebuilt from the ``policy.pt`` weights a previous run saved, without training), its learning
+curve recorded on the evaluation episodes; then the MPC and every agent are evaluated by
+:func:`learning.evaluate` on the same seeds (``10⁶ + j``, disjoint from every training episode).  Writes
+into ``OUT/ENV/``: ``report.md`` (setup, table, per-seed results, RL steps to match the MPC, goals),
+``curves.png`` (mean evaluation return and success rate against environment steps, the mean over the
+training seeds with a min–max band, the MPC as a horizontal line), ``compare.json`` (also written to
+``--json PATH``) and ``agents/ALGO/seedS/{model.zip, policy.pt, agent.json}``.
+
+JSON schema: ``{"env", "mpc": {metrics} | null, "ppo": {metrics}, "sac": {metrics}, "budget_steps":
+{algo: steps}, "seeds": [training seeds]}``; the metrics are the subset :data:`METRIC_KEYS` of
+:meth:`learning.evaluate.EvalResult.summary` (for an algorithm: over the episodes of all its training
+seeds pooled), and an algorithm's entry adds ``per_seed``, ``curve``, ``steps_to_match``,
+``train_time_s``, ``num_timesteps``, ``loaded`` and ``params``.
+
+"RL steps to match the MPC": the first evaluated step count at which the agent's evaluation success
+rate, averaged over the training seeds, reaches the MPC's (and, separately, the mean return reaches the
+MPC's mean return), else "not reached within budget".
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from liecontrol.report import print_table, restores_threads
+
+__all__ = ["add_arguments", "run", "compare", "METRIC_KEYS", "parse_budgets", "resolve_env"]
+
+#: the keys of EvalResult.summary() kept in the JSON metrics
+METRIC_KEYS = ("episodes", "num_envs", "success_rate", "return", "final_error", "tracking_error", "effort",
+               "invalid_rate", "violation_rate", "step_ms", "step_ms_batch1", "wall_time_s")
+
+#: default evaluation episodes by task (the MPC's evaluation dominates where it is slow)
+DEFAULT_EVAL_EPISODES = {"PendulumSwingUp": 32, "CartPoleSwingUp": 32}
+
+
+def resolve_env(value: str) -> str:
+    """The task name of ``value`` (a task name or a ``liecontrol/<Name>-v0`` id); argparse type of ENV."""
+    from learning.envs import TASKS
+
+    name = value
+    if "/" in name:
+        ns, rest = name.split("/", 1)
+        name = rest.rsplit("-v", 1)[0] if ns == "liecontrol" else value
+    if name not in TASKS:
+        raise argparse.ArgumentTypeError(
+            f"unknown environment {value!r}; known: {sorted(TASKS)} (or liecontrol/<name>-v0)")
+    return name
+
+
+def parse_budgets(items: list[str] | None, algos: list[str], task) -> dict[str, int]:
+    """``--budget-steps`` items (``N`` for every algorithm, or ``ALGO=N``) over the per-task defaults."""
+    from learning.baselines import default_budget
+
+    out = {a: default_budget(a, task) for a in algos}
+    for it in items or []:
+        algo, _, n = it.rpartition("=")
+        try:
+            steps = int(float(n))
+        except ValueError:
+            steps = 0
+        if steps < 1 or (algo and algo not in algos):
+            raise ValueError(f"argument --budget-steps: expected N or ALGO=N with ALGO in {algos} and N a "
+                             f"positive int, got {it!r}")
+        for a in ([algo] if algo else algos):
+            out[a] = steps
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("env", metavar="ENV", type=resolve_env,
+                        help="task name (PendulumSwingUp, CartPoleSwingUp, ...) or liecontrol/<name>-v0")
+    parser.add_argument("--algos", nargs="+", default=["ppo", "sac"], choices=["ppo", "sac"])
+    parser.add_argument("--budget-steps", nargs="+", default=None, metavar="[ALGO=]N",
+                        help="training environment steps per seed: N for every algorithm or ALGO=N "
+                             "(default per task, e.g. PendulumSwingUp ppo=60000 sac=5000)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds")
+    parser.add_argument("--eval-episodes", type=int, default=None,
+                        help="held-out evaluation episodes (seeds 10^6 + j), also those of the curves "
+                             "(default 32 for the pendulum and the cart-pole, else 16)")
+    parser.add_argument("--eval-every", type=int, default=None,
+                        help="environment steps between two curve evaluations (default budget/20)")
+    parser.add_argument("--num-envs", type=int, default=None,
+                        help="evaluation batch N (default: all evaluation episodes in one batch)")
+    parser.add_argument("--train-envs", type=int, default=None,
+                        help="training environments (default per task and algorithm)")
+    parser.add_argument("--out", default="out/compare", help="output root (writes OUT/ENV/...)")
+    parser.add_argument("--load", default=None, metavar="DIR",
+                        help="reuse the policy.pt weights of a previous run (its OUT/ENV folder) instead "
+                             "of training; only the safe .pt files are read, never the SB3 .zip")
+    parser.add_argument("--json", default=None, metavar="PATH", help="also write the JSON record here")
+    parser.add_argument("--mpc-horizon", type=int, default=None, help="MPC horizon (default per task)")
+    parser.add_argument("--no-mpc", action="store_true", help="skip the MPC expert")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: robust on a shared machine)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def _metrics(summary: dict) -> dict:
+    return {k: summary.get(k) for k in METRIC_KEYS}
+
+
+def _pooled(results):
+    """One EvalResult holding the episodes of several (same task, same evaluation seeds per result)."""
+    from learning.evaluate import EPISODE_FIELDS, EvalResult
+
+    if len(results) == 1:
+        return results[0]
+    cat = {k: np.concatenate([getattr(r, k) for r in results]) for k in EPISODE_FIELDS}
+    T = max(r.error_curve.shape[1] for r in results)
+    curves = [np.pad(r.error_curve, ((0, 0), (0, T - r.error_curve.shape[1])), constant_values=np.nan)
+              for r in results]
+    meta = dict(results[0].meta)
+    meta["wall_time_s"] = float(sum(r.meta.get("wall_time_s") or 0.0 for r in results))
+    return EvalResult(**cat, error_curve=np.concatenate(curves), errors=sum((r.errors for r in results), []),
+                      step_ms=np.concatenate([r.step_ms for r in results]),
+                      step_ms_batch1=np.concatenate([r.step_ms_batch1 for r in results]),
+                      solver_steps=np.concatenate([r.solver_steps for r in results]), meta=meta)
+
+
+def _find_saved(load: Path, task: str, algo: str, seed: int) -> Path:
+    for base in (load / "agents", load, load / task / "agents"):
+        p = base / algo / f"seed{seed}" / "policy.pt"
+        if p.is_file():
+            return p
+    raise FileNotFoundError(f"argument --load: no saved weights for {algo} seed {seed} under {load} "
+                            f"(expected {load}/agents/{algo}/seed{seed}/policy.pt)")
+
+
+def _plain(v):
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    if isinstance(v, np.ndarray):
+        return _plain(v.tolist())
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v) if math.isfinite(v) else None
+    return v
+
+
+@restores_threads
+def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | None = None,
+            seeds=(0, 1, 2), eval_episodes: int | None = None, eval_every: int | None = None,
+            num_envs: int | None = None, train_envs: int | None = None, out: str | Path = "out/compare",
+            load: str | Path | None = None, mpc: bool = True, mpc_horizon: int | None = None,
+            threads: int = 1, log=None) -> dict:
+    """Run the comparison (module docstring) and write its files; returns the JSON record, with the
+    extra key ``"_files"`` (the paths written) and ``"_wall_time_s"``."""
+    from learning import baselines as bl
+    from learning.envs.single import make_task
+    from learning.evaluate import evaluate
+    from learning.policies import MPCExpert
+
+    t_start = time.perf_counter()
+    if threads and threads > 0:
+        torch.set_num_threads(threads)
+    task = make_task(resolve_env(env))
+    algos = list(algos)
+    seeds = [int(s) for s in seeds]
+    if not seeds:
+        raise ValueError("argument --seeds: give at least one training seed")
+    budgets = parse_budgets(None, algos, task) if budget_steps is None else {a: int(budget_steps[a])
+                                                                             for a in algos}
+    E = int(eval_episodes or DEFAULT_EVAL_EPISODES.get(task.name, 16))
+    if E < 1:
+        raise ValueError(f"argument --eval-episodes: must be positive, got {E}")
+    N = min(int(num_envs or E), E)
+    ev_seeds = bl.eval_seeds(E)
+    root = Path(out) / task.name
+    root.mkdir(parents=True, exist_ok=True)
+    say = log or (lambda s: None)
+    record: dict = {"env": task.name, "mpc": None}
+    notes: list[str] = []
+
+    mpc_res = None
+    if mpc:
+        expert = MPCExpert(task, horizon=mpc_horizon)
+        say(f"{task.name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
+        mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=False)
+        record["mpc"] = _metrics(mpc_res.summary()) | {"horizon": expert.horizon, "eval_seeds": ev_seeds}
+        say(f"{task.name}: MPC success {mpc_res.success.mean():.3f}, return {mpc_res.returns.mean():.1f}")
+    mpc_success = float(mpc_res.success.mean()) if mpc_res is not None else math.nan
+    mpc_return = float(mpc_res.returns.mean()) if mpc_res is not None else math.nan
+
+    evals: dict[str, list] = {}
+    for algo in algos:
+        per_seed, results, curves = [], [], []
+        for s in seeds:
+            if load is not None:
+                pt = _find_saved(Path(load), task.name, algo, s)
+                meta = bl.read_agent_meta(pt)
+                model = bl.load_agent(pt, algo, task)
+                curve, train_time, steps, params = (meta["curve"], meta.get("train_time_s"),
+                                                    meta.get("num_timesteps"), meta["params"])
+                if meta.get("eval_episodes") not in (None, E):
+                    notes.append(f"{algo} seed {s}: its saved curve was evaluated on {meta['eval_episodes']} "
+                                 f"episodes, the final evaluation on {E}")
+                say(f"{task.name} {algo} seed {s}: loaded {pt} (no training)")
+                loaded = True
+            else:
+                every = eval_every or max(1, budgets[algo] // 20)
+                res = bl.train(algo, task, budgets[algo], s, eval_every=every, eval_episodes=E,
+                            out_dir=root / "agents" / algo / f"seed{s}", num_envs=train_envs, log=say)
+                model, curve, train_time, steps, params = (res.model, res.curve(), res.train_time_s,
+                                                           res.num_timesteps, res.params)
+                notes.extend(n for n in res.notes if n not in notes)
+                loaded = False
+            r = evaluate(model, task, seeds=ev_seeds, num_envs=N, dtype=torch.float32, progress=False)
+            results.append(r)
+            curves.append(curve)
+            per_seed.append({"seed": s, "success_rate": float(r.success.mean()),
+                             "return_mean": float(r.returns.mean()), "return_std": float(r.returns.std()),
+                             "final_error_mean": float(np.nanmean(r.final_error)),
+                             "train_time_s": train_time, "num_timesteps": steps, "loaded": loaded,
+                             "steps_to_match": {
+                                 "success": bl.steps_to_match(curve["steps"], curve["success"], mpc_success),
+                                 "return": bl.steps_to_match(curve["steps"], curve["returns"], mpc_return)}})
+            say(f"{task.name} {algo} seed {s}: success {per_seed[-1]['success_rate']:.3f}, "
+                f"return {per_seed[-1]['return_mean']:.1f}")
+        pooled = _pooled(results)
+        st, rmean, rmin, rmax = bl.mean_curve(curves, "returns")
+        _, smean, smin, smax = bl.mean_curve(curves, "success")
+        times = [p["train_time_s"] for p in per_seed if p["train_time_s"] is not None]
+        record[algo] = _metrics(pooled.summary()) | {
+            "eval_seeds": ev_seeds, "per_seed": per_seed,
+            "steps_to_match": {"success": bl.steps_to_match(st, smean, mpc_success),
+                               "return": bl.steps_to_match(st, rmean, mpc_return)},
+            "curve": {"steps": st, "return_mean": rmean, "return_min": rmin, "return_max": rmax,
+                      "success_mean": smean, "success_min": smin, "success_max": smax},
+            "train_time_s": {"mean": float(np.mean(times)) if times else None, "total": float(sum(times))},
+            "num_timesteps": max(int(p["num_timesteps"] or 0) for p in per_seed),
+            "loaded": all(p["loaded"] for p in per_seed), "params": params}
+        evals[algo] = results
+    record["budget_steps"] = budgets
+    record["seeds"] = seeds
+    record = _plain(record)
+    if not bl.tensorboard_available() and load is None:
+        notes = [n for n in notes if "TensorBoard" not in n]
+        notes.append("TensorBoard logging skipped: the 'tensorboard' package is not installed "
+                     "(pip install tensorboard to get logs in agents/ALGO/seedS/tb)")
+    wall = time.perf_counter() - t_start
+    files = {"json": str(root / "compare.json"), "report": str(root / "report.md"),
+             "curves": str(root / "curves.png")}
+    _plot(record, algos, files["curves"])
+    Path(files["json"]).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
+    Path(files["report"]).write_text(_report(record, algos, task, E, N, notes, wall, threads))
+    return record | {"_files": files, "_wall_time_s": wall}
+
+
+def _fmt(v, spec=".3g") -> str:
+    if v is None or (isinstance(v, float) and not math.isfinite(v)):
+        return "-"
+    return format(v, spec)
+
+
+def _match_text(s: int | None, budget: int) -> str:
+    return "not reached within budget" + f" ({budget} steps)" if s is None else f"{s} steps"
+
+
+def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str], wall: float,
+            threads: int) -> str:
+    from learning.baselines import EVAL_SEED0
+
+    mpc = rec.get("mpc")
+    L = [f"# liecontrol compare — {rec['env']}", "",
+         "## Setup", "",
+         f"- task `{rec['env']}` (`liecontrol/{rec['env']}-v0`), episodes of {task.max_episode_steps} steps",
+         f"- evaluation: {E} held-out episodes, env seeds {EVAL_SEED0}…{EVAL_SEED0 + E - 1}, the same for "
+         f"every policy, batch N = {N} (and batch 1 for the timing); RL agents deterministic, float32 "
+         "envs (as trained); the MPC in float64",
+         f"- MPC expert: iLQR MPC on the task's own model and cost, horizon "
+         f"{mpc['horizon'] if mpc else '-'}, zero training" if mpc else "- MPC expert: skipped (--no-mpc)",
+         f"- RL: stable-baselines3 {_sb3_version()} ({', '.join(a.upper() for a in algos)}), training seeds "
+         f"{rec['seeds']}, budget per seed {rec['budget_steps']} environment steps",
+         f"- machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+         f"{threads} intra-op thread(s); command wall time {wall:.0f} s", ""]
+    for a in algos:
+        L.append(f"- {a.upper()} hyperparameters: `{json.dumps(rec[a]['params'])}`")
+    L += ["", "Model files: `agents/ALGO/seedS/model.zip` is SB3's format — **SB3 unpickles parts of a "
+          ".zip when loading it, so a model file from elsewhere can execute code**; `policy.pt` holds the "
+          "plain policy weights (`torch.load(path, weights_only=True)`), rebuilt safely by "
+          "`learning.baselines.load_agent` (which loads a .zip only with `trust_zip=True`).", ""]
+    L += ["## Results", "",
+          "| policy | training steps / seed | return mean ± std | success rate | final error mean (median) "
+          f"| ms/step batch {N} median (p95) | ms/step batch 1 median (p95) | training wall time / seed |",
+          "|---|---|---|---|---|---|---|---|"]
+
+    def row(name, m, steps, ttime):
+        r, fe = m["return"], m["final_error"]
+        return (f"| {name} | {steps} | {_fmt(r['mean'], '.1f')} ± {_fmt(r['std'], '.1f')} | "
+                f"{_fmt(m['success_rate'], '.3f')} | {_fmt(fe['mean'])} ({_fmt(fe['median'])}) | "
+                f"{_fmt(m['step_ms']['median'])} ({_fmt(m['step_ms']['p95'])}) | "
+                f"{_fmt(m['step_ms_batch1']['median'])} ({_fmt(m['step_ms_batch1']['p95'])}) | {ttime} |")
+
+    if mpc:
+        L.append(row("MPC", mpc, 0, "0 s"))
+    for a in algos:
+        m = rec[a]
+        t = m["train_time_s"]["mean"]
+        tt = "loaded" if m["loaded"] and t is None else f"{_fmt(t, '.0f')} s" + (" (loaded)" if m["loaded"]
+                                                                                else "")
+        L.append(row(f"{a.upper()} ({len(rec['seeds'])} seeds pooled)", m, m["num_timesteps"], tt))
+    L += ["", "### Per training seed", "",
+          "| algo | seed | return mean ± std | success rate | final error mean | steps to match MPC success "
+          "| steps to match MPC return | training wall time |", "|---|---|---|---|---|---|---|---|"]
+    for a in algos:
+        for p in rec[a]["per_seed"]:
+            sm = p["steps_to_match"]
+            L.append(f"| {a.upper()} | {p['seed']} | {_fmt(p['return_mean'], '.1f')} ± "
+                     f"{_fmt(p['return_std'], '.1f')} | {_fmt(p['success_rate'], '.3f')} | "
+                     f"{_fmt(p['final_error_mean'])} | {_fmt(sm['success'], 'd')} | "
+                     f"{_fmt(sm['return'], 'd')} | {_fmt(p['train_time_s'], '.0f')} s |")
+    L += ["", "## RL steps to match the MPC", ""]
+    if not mpc:
+        L.append("No MPC reference (--no-mpc).")
+    else:
+        L.append(f"MPC: success rate {_fmt(mpc['success_rate'], '.3f')}, mean return "
+                 f"{_fmt(mpc['return']['mean'], '.1f')}. First evaluated step count at which the agent's "
+                 "curve, averaged over the training seeds, reaches it:")
+        L.append("")
+        for a in algos:
+            sm, b = rec[a]["steps_to_match"], rec["budget_steps"][a]
+            L.append(f"- {a.upper()}: success rate — {_match_text(sm['success'], b)}; mean return — "
+                     f"{_match_text(sm['return'], b)}")
+        L += ["", "## Goals", "",
+              f"- MPC success ≥ 95 % with zero training: "
+              f"{'reached' if (mpc['success_rate'] or 0) >= 0.95 else 'not reached'} "
+              f"({_fmt(100 * (mpc['success_rate'] or 0), '.1f')} %)"]
+        for a in algos:
+            sm = rec[a]["steps_to_match"]["success"]
+            L.append(f"- {a.upper()} steps to match the MPC's success rate: "
+                     f"{_match_text(sm, rec['budget_steps'][a])}")
+    L += ["", "## Learning curves", "", "![learning curves](curves.png)", "",
+          "Mean over the training seeds (band: min–max) of the evaluation return and success rate on the "
+          "held-out episodes; dashed: the MPC (zero training)."]
+    if notes:
+        L += ["", "## Notes", ""] + [f"- {n}" for n in notes]
+    return "\n".join(L) + "\n"
+
+
+def _sb3_version() -> str:
+    try:
+        import stable_baselines3
+    except ImportError:  # pragma: no cover
+        return "?"
+    return stable_baselines3.__version__
+
+
+def _plot(rec: dict, algos: list[str], path: str) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(11, 4.2))
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(1, 2)
+    colors = {"ppo": "tab:blue", "sac": "tab:orange"}
+    smallest = []
+    for a in algos:
+        c = rec[a]["curve"]
+        st = np.asarray(c["steps"], dtype=float)
+        if st.size > 1:
+            smallest.append(float(st[1]))
+        for ax, key in zip(axes, ("return", "success")):
+            mean = np.asarray(c[f"{key}_mean"], dtype=float)
+            lo, hi = (np.asarray(c[f"{key}_{k}"], dtype=float) for k in ("min", "max"))
+            ax.plot(st, mean, color=colors.get(a), label=f"{a.upper()} (mean of {len(rec['seeds'])} seeds)")
+            ax.fill_between(st, lo, hi, color=colors.get(a), alpha=0.2)
+    mpc = rec.get("mpc")
+    for ax, key, label in zip(axes, ("return", "success"), ("mean evaluation return", "success rate")):
+        if mpc:
+            y = mpc["return"]["mean"] if key == "return" else mpc["success_rate"]
+            if y is not None:
+                ax.axhline(y, color="k", linestyle="--", label="MPC (no training)")
+        if smallest:
+            ax.set_xscale("symlog", linthresh=max(min(smallest), 1.0))
+        ax.set_xlim(left=0)
+        ax.set_xlabel("environment steps (symlog)")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[1].set_ylim(-0.05, 1.05)
+    vals = [v for a in algos for v in rec[a]["curve"]["return_min"] + rec[a]["curve"]["return_max"]
+            if v is not None]
+    ref = abs(mpc["return"]["mean"]) if mpc and mpc["return"]["mean"] is not None else 0.0
+    if vals and max(vals) - min(vals) > 20 * max(ref, 1.0):  # a diverged run would flatten the rest
+        axes[0].set_yscale("symlog", linthresh=max(ref, 1.0))
+    axes[0].legend(fontsize=8)
+    fig.suptitle(f"{rec['env']}: RL learning curves vs MPC (evaluation on the same held-out episodes)")
+    fig.tight_layout()
+    fig.savefig(path, format="png", dpi=100)
+
+
+def run(args: argparse.Namespace) -> int:
+    from learning.envs.single import make_task
+
+    task = make_task(args.env)
+    try:
+        budgets = parse_budgets(args.budget_steps, list(args.algos), task)
+    except ValueError as e:
+        print(f"liecontrol compare: error: {e}", file=sys.stderr)
+        return 2
+    if args.load is not None and not Path(args.load).is_dir():
+        print(f"liecontrol compare: error: argument --load: {args.load} is not a folder", file=sys.stderr)
+        return 2
+    log = None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
+    try:
+        rec = compare(args.env, algos=args.algos, budget_steps=budgets, seeds=args.seeds,
+                      eval_episodes=args.eval_episodes, eval_every=args.eval_every, num_envs=args.num_envs,
+                      train_envs=args.train_envs, out=args.out, load=args.load, mpc=not args.no_mpc,
+                      mpc_horizon=args.mpc_horizon, threads=args.threads, log=log)
+    except (FileNotFoundError, ValueError) as e:
+        print(f"liecontrol compare: error: {e}", file=sys.stderr)
+        return 2
+    files, wall = rec.pop("_files"), rec.pop("_wall_time_s")
+    rows = []
+    if rec["mpc"]:
+        rows.append(_row("mpc", rec["mpc"], 0))
+    for a in args.algos:
+        rows.append(_row(a, rec[a], rec[a]["num_timesteps"], rec[a]["steps_to_match"]["success"]))
+    episodes = len((rec["mpc"] or rec[args.algos[0]])["eval_seeds"])
+    print(f"{rec['env']}: evaluation on {episodes} held-out episodes per policy "
+          f"(RL: {len(rec['seeds'])} training seeds pooled)")
+    print_table(rows, ["policy", "train_steps", "return_mean", "return_std", "success_rate", "final_error",
+                       "ms_step_batchN", "ms_step_batch1", "steps_to_match_success"])
+    if args.json:
+        p = Path(args.json)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(json.dumps(rec, indent=1, allow_nan=False) + "\n")
+        files["json_arg"] = str(p)
+    print(f"wrote {files['report']}, {files['curves']}, {files['json']}"
+          + (f", {args.json}" if args.json else "") + f" in {wall:.0f} s")
+    return 0
+
+
+def _row(name: str, m: dict, steps: int, match: int | None = None) -> dict:
+    return {"policy": name, "train_steps": steps, "return_mean": m["return"]["mean"],
+            "return_std": m["return"]["std"], "success_rate": m["success_rate"],
+            "final_error": m["final_error"]["mean"], "ms_step_batchN": m["step_ms"]["median"],
+            "ms_step_batch1": m["step_ms_batch1"]["median"],
+            "steps_to_match_success": "-" if name == "mpc" else ("not reached" if match is None else match)}

@@ -1,0 +1,147 @@
+"""``liecontrol compare`` and :mod:`learning.baselines`: end to end on tiny budgets, safe weights, ``--load``,
+the "steps to match the MPC" logic and argument errors."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from learning import baselines as bl
+from liecontrol import cli
+
+TASK = "PendulumSwingUp"
+TINY = ["--budget-steps", "256", "--eval-episodes", "2", "--eval-every", "128", "--mpc-horizon", "10",
+        "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    out = tmp_path_factory.mktemp("compare")
+    args = ["compare", TASK, "--algos", "ppo", "sac", "--seeds", "0", "1", "2", "--out", str(out),
+            "--json", str(out / "record.json"), *TINY]
+    assert cli.main(args) == 0
+    return out
+
+
+def test_cli_writes_report_curves_and_json(trained):
+    d = trained / TASK
+    rec = json.loads((trained / "record.json").read_text())
+    assert rec == json.loads((d / "compare.json").read_text())
+    assert set(rec) == {"env", "mpc", "ppo", "sac", "budget_steps", "seeds"}
+    assert rec["env"] == TASK and rec["seeds"] == [0, 1, 2]
+    assert rec["budget_steps"] == {"ppo": 256, "sac": 256}
+    for name in ("mpc", "ppo", "sac"):
+        m = rec[name]
+        assert isinstance(m["success_rate"], float) and 0 <= m["success_rate"] <= 1
+        assert isinstance(m["return"]["mean"], float) and isinstance(m["return"]["std"], float)
+        assert m["step_ms"]["median"] > 0 and m["step_ms_batch1"]["median"] > 0
+        assert m["eval_seeds"] == bl.eval_seeds(2)
+    assert rec["mpc"]["episodes"] == 2 and rec["mpc"]["horizon"] == 10
+    for algo in ("ppo", "sac"):
+        m = rec[algo]
+        assert m["episodes"] == 6  # 3 training seeds x 2 evaluation episodes, pooled
+        assert [p["seed"] for p in m["per_seed"]] == [0, 1, 2]
+        assert all(not p["loaded"] and p["train_time_s"] > 0 and p["num_timesteps"] >= 256
+                   for p in m["per_seed"])
+        c = m["curve"]
+        assert c["steps"][0] == 0 and c["steps"][-1] >= 256
+        assert len(c["return_mean"]) == len(c["steps"]) == len(c["success_max"])
+        assert set(m["steps_to_match"]) == {"success", "return"}
+        # the last curve point is the final policy on the same episodes as the final evaluation
+        assert np.isclose(c["return_mean"][-1], np.mean([p["return_mean"] for p in m["per_seed"]]))
+    report = (d / "report.md").read_text()
+    for text in ("| MPC |", "PPO", "SAC", "RL steps to match the MPC", "curves.png", "execute code",
+                 "weights_only=True"):
+        assert text in report
+    assert (d / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_saved_weights_load_safely_and_act_like_the_trained_agent(trained):
+    rec = json.loads((trained / "record.json").read_text())
+    obs = np.random.default_rng(0).uniform(-1, 1, (7, 3)).astype(np.float32)
+    obs[:, 2] *= 8
+    for algo in ("ppo", "sac"):
+        d = trained / TASK / "agents" / algo / "seed1"
+        state = torch.load(d / "policy.pt", weights_only=True)
+        assert state and all(isinstance(v, torch.Tensor) for v in state.values())
+        safe = bl.load_agent(d / "policy.pt")
+        trusted = bl.load_agent(d / "model.zip", trust_zip=True)  # SB3's own save of the trained model
+        np.testing.assert_array_equal(safe.predict(obs, deterministic=True)[0],
+                                      trusted.predict(obs, deterministic=True)[0])
+        # and it reproduces the trained agent's evaluation exactly
+        from learning import evaluate
+        r = evaluate(safe, TASK, seeds=bl.eval_seeds(2), num_envs=2, dtype=torch.float32, progress=False,
+                     timing_batch1=False)
+        assert float(r.returns.mean()) == pytest.approx(rec[algo]["per_seed"][1]["return_mean"], rel=1e-6)
+
+
+def test_train_then_load_agent_gives_the_same_deterministic_actions(tmp_path):
+    res = bl.train("sac", TASK, 150, seed=3, eval_every=100, eval_episodes=1, out_dir=tmp_path)
+    assert res.steps == [0, 100, 150] and len(res.returns) == 3
+    meta = json.loads((tmp_path / "agent.json").read_text())
+    assert set(meta) >= {"algo", "task", "seed", "params", "curve"}
+    again = bl.load_agent(tmp_path)
+    obs = np.random.default_rng(1).uniform(-1, 1, (5, 3)).astype(np.float32)
+    np.testing.assert_array_equal(res.model.predict(obs, deterministic=True)[0],
+                                  again.predict(obs, deterministic=True)[0])
+    with pytest.raises(ValueError, match="trust_zip"):
+        bl.load_agent(tmp_path / "model.zip")
+
+
+def test_load_reuses_the_weights_without_training(trained, tmp_path):
+    first = json.loads((trained / "record.json").read_text())
+    args = ["compare", TASK, "--algos", "ppo", "sac", "--seeds", "0", "1", "2", "--no-mpc", "--out",
+            str(tmp_path), "--load", str(trained / TASK), "--json", str(tmp_path / "r.json"), *TINY]
+    assert cli.main(args) == 0
+    rec = json.loads((tmp_path / "r.json").read_text())
+    assert rec["mpc"] is None
+    assert not (tmp_path / TASK / "agents").exists()  # nothing trained, nothing saved
+    for algo in ("ppo", "sac"):
+        assert rec[algo]["loaded"] and all(p["loaded"] for p in rec[algo]["per_seed"])
+        assert rec[algo]["curve"] == first[algo]["curve"]  # the saved curves, not recomputed
+        for p, q in zip(rec[algo]["per_seed"], first[algo]["per_seed"]):
+            assert p["return_mean"] == pytest.approx(q["return_mean"], rel=1e-6)
+            assert p["train_time_s"] == q["train_time_s"]
+    missing = ["compare", TASK, "--algos", "ppo", "--seeds", "7", "--no-mpc", "--out", str(tmp_path),
+               "--load", str(trained / TASK), *TINY]
+    assert cli.main(missing) == 2
+
+
+def test_steps_to_match_on_synthetic_curves():
+    steps = [0, 100, 200, 300]
+    assert bl.steps_to_match(steps, [0.0, 0.5, 0.96, 1.0], 0.95) == 200
+    assert bl.steps_to_match(steps, [0.0, 0.5, 0.9, 0.94], 0.95) is None
+    assert bl.steps_to_match(steps, [0.0, 1 / 3 + 1 / 3 + 1 / 3, 1.0, 1.0], 1.0) == 100  # rounding
+    assert bl.steps_to_match(steps, [-900, -400, -150, -140], -150.0) == 200  # returns: higher is better
+    assert bl.steps_to_match(steps, [0.0, 1.0, 1.0, 1.0], float("nan")) is None
+    curves = [{"steps": [0, 100, 200], "returns": [-9, -5, -1], "success": [0, 0.5, 1]},
+              {"steps": [0, 100, 200, 300], "returns": [-7, -3, -3, -2], "success": [0, 0, 0.5, 1]}]
+    st, mean, lo, hi = bl.mean_curve(curves, "success")
+    assert st.tolist() == [0, 100, 200] and mean.tolist() == [0, 0.25, 0.75]
+    assert lo.tolist() == [0, 0, 0.5] and hi.tolist() == [0, 0.5, 1]
+    assert bl.steps_to_match(st, mean, 0.75) == 200
+
+
+def test_unknown_env_and_bad_budget_name_the_argument(capsys, tmp_path):
+    with pytest.raises(SystemExit) as e:
+        cli.main(["compare", "NoSuchTask"])
+    assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "ENV" in err and "NoSuchTask" in err and "PendulumSwingUp" in err
+    assert cli.main(["compare", "liecontrol/PendulumSwingUp-v0", "--budget-steps", "dqn=5", "--out",
+                     str(tmp_path)]) == 2
+    assert "--budget-steps" in capsys.readouterr().err
+
+
+def test_defaults_and_budget_parsing():
+    from liecontrol.compare import parse_budgets, resolve_env
+
+    assert resolve_env("liecontrol/CartPoleSwingUp-v0") == "CartPoleSwingUp"
+    assert bl.hyperparams("ppo", TASK)["gamma"] == 0.9
+    assert bl.hyperparams("sac", TASK)["learning_rate"] == 1e-3
+    assert bl.hyperparams("ppo", "ArmReach") == bl.PPO_DEFAULTS["*"]
+    assert parse_budgets(None, ["ppo", "sac"], TASK) == bl.DEFAULT_BUDGETS[TASK]
+    assert parse_budgets(["1000", "sac=50"], ["ppo", "sac"], TASK) == {"ppo": 1000, "sac": 50}
+    with pytest.raises(ValueError, match="budget"):
+        parse_budgets(["0"], ["ppo"], TASK)
