@@ -13,6 +13,11 @@
    each optimal cost with respect to its pendulum's length, checked by finite differences (an element
    whose solver switches between two local optima within ±h disagrees; the count says how many).
 
+5. **What the toolkit is for: MPC and RL side by side.**  The pendulum swing-up task (Pendulum-v1's
+   physics and reward) on hundreds of batched environments: the iLQR MPC expert with zero training and a
+   PPO agent trained inside the demo (never downloaded; a fixed step budget), evaluated on the same
+   held-out seeds by :func:`learning.evaluate` — success, return, final error, time per control step.
+
 Results are printed and written to ``OUT/demo/summary.json``; plots go to ``OUT/demo/*.png``.
 """
 
@@ -37,6 +42,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pairs", type=int, default=4096, help="pose pairs interpolated at once")
     p.add_argument("--clouds", type=int, default=256, help="independent pose clouds averaged at once")
     p.add_argument("--pendulums", type=int, default=64, help="pendulums swung up at once")
+    p.add_argument("--envs", type=int, default=256, help="batched environments of the MPC-vs-RL comparison")
+    p.add_argument("--ppo-steps", type=int, default=32768, help="PPO training budget (environment steps)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
 
@@ -145,11 +152,48 @@ def swingup_check(batch: int, gen: torch.Generator, T: int = 100) -> dict:
             "_x": x[:8], "_u": sol.u.detach()[:8]}
 
 
-def _plot(out: Path, interp: dict, avg: dict, swing: dict | None = None) -> list[str]:
+_EVAL_SEED = 1_000_000  # held-out evaluation seeds: disjoint from every training seed of learning.baselines
+
+
+def mpc_vs_rl(envs: int, ppo_steps: int, seed: int = 0) -> dict:
+    """The MPC expert (zero training) and a PPO agent trained here for ``ppo_steps`` steps, evaluated on
+    the same ``envs`` held-out pendulum swing-ups in one batch each (section 5 of the module docstring)."""
+    from learning.baselines import make_agent
+    from learning.evaluate import evaluate
+
+    task = "PendulumSwingUp"
+    kw = dict(num_envs=envs, episodes=envs, seed=_EVAL_SEED, progress=False)
+    t0 = time.perf_counter()
+    mpc = evaluate("mpc", task, **kw)
+    t_mpc = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # SB3's small networks train fastest on one thread (measured)
+    try:
+        agent = make_agent("ppo", task, seed=seed)
+        agent.learn(total_timesteps=ppo_steps)
+    finally:
+        torch.set_num_threads(threads)
+    t_train = time.perf_counter() - t0
+    rl = evaluate(agent, task, dtype=torch.float32, **kw)  # as trained: float32 observations
+    out = {"task": task, "envs": envs, "ppo_steps": int(agent.num_timesteps), "ppo_train_s": t_train,
+           "mpc_eval_s": t_mpc}
+    for name, r in (("mpc", mpc), ("ppo", rl)):
+        sm = r.summary()
+        out[name] = {"success_rate": sm["success_rate"], "return_mean": sm["return"]["mean"],
+                     "return_std": sm["return"]["std"], "final_error_median": sm["final_error"]["median"],
+                     "step_ms_median": sm["step_ms"]["median"], "invalid": sm["invalid_count"]}
+        out["_" + name] = r
+    return out
+
+
+def _plot(out: Path, interp: dict, avg: dict, swing: dict | None = None, duel: dict | None = None
+          ) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import numpy as np
 
     files = []
     fig = plt.figure(figsize=(6, 5))
@@ -200,6 +244,30 @@ def _plot(out: Path, interp: dict, avg: dict, swing: dict | None = None) -> list
         fig.savefig(f, dpi=110)
         plt.close(fig)
         files.append(str(f))
+    if duel is not None:
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
+        for name, color in (("mpc", "C0"), ("ppo", "C1")):
+            r, m = duel["_" + name], duel[name]
+            label = (f"{name.upper()}: success {100 * m['success_rate']:.0f} %, "
+                     f"return {m['return_mean']:.0f}")
+            a1.hist(r.returns, bins=30, alpha=0.6, color=color, label=label)
+            t = np.arange(r.error_curve.shape[1]) * 0.05
+            a2.plot(t, np.nanmedian(r.error_curve, 0), color=color, label=f"{name.upper()} median")
+            a2.fill_between(t, np.nanpercentile(r.error_curve, 10, 0), np.nanpercentile(r.error_curve, 90, 0),
+                            color=color, alpha=0.2)
+        a1.set_xlabel("episode return")
+        a1.set_ylabel("episodes")
+        a1.legend(fontsize=8)
+        a2.set_xlabel("time [s]")
+        a2.set_ylabel("|angle from upright| [rad]")
+        a2.legend(fontsize=8)
+        fig.suptitle(f"pendulum swing-up on {duel['envs']} batched envs: MPC (no training) vs PPO "
+                     f"({duel['ppo_steps']} steps, trained in the demo)")
+        fig.tight_layout()
+        f = out / "mpc_vs_ppo.png"
+        fig.savefig(f, dpi=110)
+        plt.close(fig)
+        files.append(str(f))
     return files
 
 
@@ -227,11 +295,21 @@ def run(args: argparse.Namespace) -> int:
           f"differences: median rel. err. {swing['grad_length_median_rel_err']:.1e}, "
           f"{swing['grad_length_agree_1e-6']}/{swing['batch']} agree to 1e-6 (e.g. "
           f"{swing['grad_length_example'][0]:.4f} vs {swing['grad_length_example'][1]:.4f})")
+    duel = mpc_vs_rl(args.envs, args.ppo_steps, args.seed)
+    print(f"[5] MPC vs RL on {duel['envs']} batched pendulum swing-ups (same held-out seeds; PPO trained "
+          f"here for {duel['ppo_steps']} steps in {duel['ppo_train_s']:.0f} s):")
+    print("    policy  success  return (mean ± std)  final |angle| (median)  ms per batched step")
+    for name in ("mpc", "ppo"):
+        m = duel[name]
+        print(f"    {name.upper():<6}  {100 * m['success_rate']:5.1f} %  {m['return_mean']:8.1f} ± "
+              f"{m['return_std']:<8.1f}  {m['final_error_median']:.1e}                 "
+              f"{m['step_ms_median']:.2f}")
     summary = {"interpolation": {k: v for k, v in interp.items() if not k.startswith("_")},
                "averaging": {k: v for k, v in avg.items() if not k.startswith("_")},
                "roundtrip_edges": edges,
-               "swingup": {k: v for k, v in swing.items() if not k.startswith("_")}}
-    files = [] if args.no_plot else _plot(out, interp, avg, swing)
+               "swingup": {k: v for k, v in swing.items() if not k.startswith("_")},
+               "mpc_vs_rl": {k: v for k, v in duel.items() if not k.startswith("_")}}
+    files = [] if args.no_plot else _plot(out, interp, avg, swing, duel)
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     for f in files + [str(out / "summary.json")]:
         print(f"wrote {f}")

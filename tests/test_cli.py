@@ -34,7 +34,8 @@ def test_console_script_entry_point_runs():
 
 
 def test_demo_reaches_its_accuracy(tmp_path, capsys):
-    args = ["demo", "--out", str(tmp_path), "--pairs", "64", "--clouds", "8", "--pendulums", "4"]
+    args = ["demo", "--out", str(tmp_path), "--pairs", "64", "--clouds", "8", "--pendulums", "4",
+            "--envs", "6", "--ppo-steps", "64"]
     assert cli.main(args) == 0
     summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
     assert summary["interpolation"]["twist_constancy_err"] < 1e-10
@@ -46,7 +47,11 @@ def test_demo_reaches_its_accuracy(tmp_path, capsys):
     assert swing["upright"] == swing["batch"] == 4 and swing["max_abs_u"] <= 3.0 + 1e-9
     assert swing["clamped_fraction"] > 0.1  # the limits are active: the pendulum has to pump
     assert swing["grad_length_median_rel_err"] < 1e-6
-    for name in ("se3_interpolation.png", "se3_averaging.png", "pendulum_swingup.png"):
+    duel = summary["mpc_vs_rl"]
+    assert duel["envs"] == 6 and duel["ppo_steps"] >= 64  # SB3 collects whole rollouts
+    assert duel["mpc"]["success_rate"] == 1.0 and duel["mpc"]["final_error_median"] < 1e-3  # no training
+    assert duel["mpc"]["invalid"] == duel["ppo"]["invalid"] == 0
+    for name in ("se3_interpolation.png", "se3_averaging.png", "pendulum_swingup.png", "mpc_vs_ppo.png"):
         assert (tmp_path / "demo" / name).stat().st_size > 1000
 
 
