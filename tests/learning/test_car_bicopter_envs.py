@@ -139,9 +139,11 @@ def test_state_from_obs_round_trip_and_render(name):
 def test_car_parking_definition():
     task = CarParking()
     assert isinstance(task.system, Car) and task.n == 5 and task.m == 2
-    x0 = task.initial_state(torch.rand(1000, 3, dtype=D64))
+    gen = torch.Generator().manual_seed(0)
+    x0 = task.initial_state(torch.rand(1000, 3, dtype=D64, generator=gen))
     assert (x0[:, :2].abs() <= 2.0).all() and (x0[:, 2].abs() <= math.pi).all() and (x0[:, 3:] == 0).all()
-    assert not task.terminated(x0).any() and not task.success(x0).any()
+    # a start may happen to be parked already (about 6e-5 of them: within 0.1 m and 0.1 rad): rare, not never
+    assert not task.terminated(x0).any() and task.success(x0).double().mean() < 0.01
     parked = torch.tensor([[0.05, -0.05, 2 * math.pi + 0.05, 0.05, 0.3]], dtype=D64)
     assert task.success(parked).all() and task.error(parked).item() == pytest.approx(math.hypot(0.05, 0.05))
     for bad in ([0.2, 0, 0, 0, 0], [0, 0, 0.2, 0, 0], [0, 0, 0, 0.2, 0], [0, 0, math.pi, 0, 0]):
@@ -170,7 +172,7 @@ def test_bicopter_hover_definition_and_thrust_mapping():
     assert torch.equal(task.step(level, torch.zeros(1, 2, dtype=D64)), level)
     with pytest.raises(ValueError, match="hover_relative"):
         BicopterHover(model=Bicopter())
-    x0 = task.initial_state(torch.rand(1000, 6, dtype=D64))
+    x0 = task.initial_state(torch.rand(1000, 6, dtype=D64, generator=torch.Generator().manual_seed(0)))
     assert not task.terminated(x0).any() and (x0[:, :2].abs() <= 1.5).all()
     for out in ([3.1, 0, 0, 0, 0, 0], [0, -3.1, 0, 0, 0, 0], [0, 0, 1.21, 0, 0, 0], [0, 0, 0, 0, 6.1, 0],
                 [0, 0, 0, 0, 0, -10.1]):
