@@ -289,20 +289,12 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
 
 
 def _jsonable(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _jsonable(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (np.bool_, bool)):
-        return bool(v)
-    if isinstance(v, (np.integer, int)):
-        return int(v)
-    if isinstance(v, (np.floating, float)):
-        return float(v) if math.isfinite(v) else None
-    if v is None or isinstance(v, str):
-        return v
-    raise TypeError(f"save_agent: hyperparameter value {v!r} is not JSON-serializable (only numbers, "
-                    "strings, lists and dicts can be rebuilt without pickle)")
+    from learning.evaluate import jsonable
+
+    try:
+        return jsonable(v, strict=True)
+    except TypeError as e:
+        raise TypeError(f"save_agent: hyperparameter {e}") from None
 
 
 def save_agent(res: TrainResult, out_dir: str | Path, **extra) -> dict[str, str]:

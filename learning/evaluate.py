@@ -56,7 +56,7 @@ from learning.envs.task import Task
 from learning.policies import as_policy
 from learning.vector import TaskVectorEnv
 
-__all__ = ["evaluate", "EvalResult"]
+__all__ = ["evaluate", "EvalResult", "jsonable"]
 
 #: the per-episode arrays of an :class:`EvalResult` (all of shape ``(E,)``)
 EPISODE_FIELDS = ("seeds", "returns", "success", "final_error", "tracking_error", "effort", "violations",
@@ -79,20 +79,25 @@ def _stats(v: np.ndarray) -> dict[str, float]:
             "min": float(f.min()), "max": float(f.max())}
 
 
-def _plain(v: Any) -> Any:
-    """JSON-safe: numpy → Python, non-finite floats → None."""
+def jsonable(v: Any, strict: bool = False) -> Any:
+    """JSON-safe: numpy → Python, non-finite floats → None, dict keys → str.  Other values pass through,
+    or with ``strict`` anything but numbers, strings, None, lists and dicts is a ``TypeError`` (what must
+    be rebuilt without pickle)."""
     if isinstance(v, dict):
-        return {str(k): _plain(x) for k, x in v.items()}
+        return {str(k): jsonable(x, strict) for k, x in v.items()}
     if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
+        return [jsonable(x, strict) for x in v]
     if isinstance(v, np.ndarray):
-        return _plain(v.tolist())
+        return jsonable(v.tolist(), strict)
     if isinstance(v, (np.bool_, bool)):
         return bool(v)
     if isinstance(v, (np.integer, int)):
         return int(v)
     if isinstance(v, (np.floating, float)):
         return float(v) if math.isfinite(v) else None
+    if strict and not (v is None or isinstance(v, str)):
+        raise TypeError(f"value {v!r} is not JSON-serializable (only numbers, strings, lists and dicts "
+                        "can be rebuilt without pickle)")
     return v
 
 
@@ -162,7 +167,7 @@ class EvalResult:
         eps = {k: getattr(self, k) for k in EPISODE_FIELDS}
         eps["errors"] = list(self.errors)
         eps["solver_steps"] = self.solver_steps
-        return _plain({"summary": self.summary(), "meta": self.meta, "episodes": eps,
+        return jsonable({"summary": self.summary(), "meta": self.meta, "episodes": eps,
                        "error_curve": self.error_curve, "step_ms": self.step_ms,
                        "step_ms_batch1": self.step_ms_batch1})
 

@@ -139,20 +139,6 @@ def _find_saved(load: Path, task: str, algo: str, seed: int) -> Path:
                             f"(expected {load}/agents/{algo}/seed{seed}/policy.pt)")
 
 
-def _plain(v):
-    if isinstance(v, dict):
-        return {str(k): _plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    if isinstance(v, np.ndarray):
-        return _plain(v.tolist())
-    if isinstance(v, (bool, np.bool_)):
-        return bool(v)
-    if isinstance(v, (int, np.integer)):
-        return int(v)
-    if isinstance(v, (float, np.floating)):
-        return float(v) if math.isfinite(v) else None
-    return v
 
 
 @restores_threads
@@ -165,7 +151,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
     extra key ``"_files"`` (the paths written) and ``"_wall_time_s"``."""
     from learning import baselines as bl
     from learning.envs.single import make_task
-    from learning.evaluate import evaluate
+    from learning.evaluate import evaluate, jsonable
     from learning.policies import MPCExpert
 
     t_start = time.perf_counter()
@@ -250,7 +236,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
         evals[algo] = results
     record["budget_steps"] = budgets
     record["seeds"] = seeds
-    record = _plain(record)
+    record = jsonable(record)
     if not bl.tensorboard_available() and load is None:
         notes = [n for n in notes if "TensorBoard" not in n]
         notes.append("TensorBoard logging skipped: the 'tensorboard' package is not installed "
