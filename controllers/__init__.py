@@ -14,6 +14,8 @@ Submodules (loaded on first use, ``controllers.riccati``):
 ``ilqr``       iLQR (batch and recursive) with control limits (§8)
 ``boxqp``      batched box-constrained QP (projected Newton)
 ``mpc``        receding-horizon MPC, ``MPCState`` and the ``MPCPolicy`` module
+``manifold_mpc`` error-state MPC on ``torchlie`` manifolds (seed 003 Algorithm 1 and its iterated variant)
+``ik``         damped least squares and batched IK
 ``systems``    system models
 =============  =====================================================================================
 
@@ -25,7 +27,7 @@ Private: ``_validate`` (argument checks), ``_lq_kernels`` (the Riccati sweeps sh
 import importlib
 
 __all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis",
-           "ilqr", "boxqp", "mpc", "systems"]
+           "ilqr", "boxqp", "mpc", "manifold_mpc", "ik", "systems"]
 
 
 def __getattr__(name: str):

@@ -477,6 +477,8 @@ class ProductManifold(Manifold):
                 raise ValueError(f"{fn}: components '{name}.{first}' and '{name}.{cname}' differ in "
                                  f"device or dtype ({dev}, {dt} vs {leaf.device}, {leaf.dtype})")
             out[cname] = t
+        if all(out[c] is x[c] for c in out):
+            return x  # nothing projected: the checked state itself (no rebuild)
         return ProductState(out, self._event_ndims())
 
     def state(self, *, project: bool = False, **components) -> ProductState:

@@ -1,0 +1,749 @@
+"""Error-state MPC on manifolds (seed 003 §IV–V, Algorithm 1), batched and differentiable.
+
+A **manifold system** (:class:`ManifoldSystem`) is a discrete system in the canonical form of Eq. 14,
+``x_{k+1} = x_k ⊕ Δt f(x_k, u_k)``, on any :mod:`torchlie.manifolds` space with ⊞/⊟/⊕ (a
+:class:`~torchlie.manifolds.ProductManifold` of Rⁿ, SO(2), SO(3), SE(3), S², surfaces …):
+
+=================================  =================================================================
+``manifold``                       the state space (points are tensors or ``ProductState``)
+``n``, ``m``, ``dt``               tangent dimension (``manifold.dim``), control dimension, Δt
+``f(x, u) -> (*B, l)``             the perturbation rate (``l = manifold.ext_dim``)
+``f_jacobians(x, u)``              *optional*: the system-specific parts ``∂f(x ⊞ δx, u)/∂δx (*B, l, n)``
+                                   and ``∂f(x, u + δu)/∂δu (*B, l, m)`` at 0 (e.g. Eq. 34); without it
+                                   they come from ``torch.func`` (``f`` must not mix batch elements)
+``step(x, u, t=0)``                ``x ⊕ Δt f(x, u)`` (what :func:`manifold_step` computes)
+``u_lower``, ``u_upper``           *optional* ``(m,)`` limits, the defaults of :class:`ErrorStateMPC`
+=================================  =================================================================
+
+**The error system** (Eq. 17–23).  Around a linearization trajectory ``(x̄_k, ū_k)`` the deviation
+``δx_k = x_k ⊟ x̄_k`` obeys ``δx_{k+1} ≈ F_x δx_k + F_u δu_k + c_k`` with ``F_x = G_x + Δt G_f ∂f/∂δx``,
+``F_u = Δt G_f ∂f/∂δu`` (Eq. 21–22; the manifold parts ``G_x``, ``G_f`` in closed form from Table I, the
+system parts analytic or by autograd) and ``c_k = (x̄_k ⊕ Δt f(x̄_k, ū_k)) ⊟ x̄_{k+1}``.  Algorithm 1
+linearizes about the reference itself (``x̄ = x^d``): then the tracking error is ``δx`` and ``c_k`` is the
+reference's own infeasibility, zero for a reference that satisfies the model (the paper's assumption;
+kept here so that a reference from continuous-time flatness, say, is followed without bias).
+
+**The MPC problem** (Eq. 15, 24) in this library's cost convention (no ½, :mod:`controllers.costs`)::
+
+    min_u  Σ_{k<N} ‖x_k ⊟ x^d_k‖²_Q + ‖u_k − u^d_k‖²_R  +  ‖x_N ⊟ x^d_N‖²_P     u_lower ≤ u_k ≤ u_upper
+
+is solved on the linearized error system either
+
+* in the **condensed** form (Eq. 25–28): ``δX = S_x δx_0 + S_u δU + s_c`` (``M`` = ``S_u``, ``H`` =
+  ``S_x`` of :func:`controllers.lifted.transfer_matrices`), a batched box QP in the ``N m`` controls
+  (:func:`controllers.boxqp.box_qp`; the closed form of Eq. 31, one Cholesky solve, when there are no
+  limits), or
+* by the **Riccati** recursion (:func:`controllers.riccati.solve`, the equivalent O(N) form) when there
+  are no limits.
+
+``solver="auto"`` takes the Riccati form without limits and the QP with them.  ``u = ū + δu`` (Eq. 30).
+
+**Iterated variant** (§V-D, :meth:`ErrorStateMPC.iterate`): when no feasible reference exists, the
+linearization trajectory is a rollout of the current controls; the cost is expanded to first order in
+``δx`` (``x ⊟ x^d ≈ ē + J δx`` with ``J = ∂((x̄ ⊞ δ) ⊟ x^d)/∂δ`` by autograd, a Gauss–Newton model),
+the QP gives a step, a backtracking line search on the true cost accepts it, and iterations stop when the
+projected gradient of the true cost (``‖U − clip(U − ∇J)‖``, relative) is below ``tol``: only then is
+an element ``CONVERGED``.
+
+**Gradients.**  Every output is a differentiable function of ``x0``, the references, the weights, the
+limits and any tensor the model's ``f`` closes over: the linearization is autograd through the model
+and the closed-form G's; the Riccati path uses the implicit LQ gradient; the QP path re-solves, with
+autograd, the equality-constrained QP on the active set that :func:`box_qp` found (clamped controls
+fixed at their bounds): the implicit-function gradient of the box QP wherever strict complementarity
+holds.  In :meth:`~ErrorStateMPC.iterate` the same is done at the returned point, with the
+Gauss–Newton Hessian.
+
+**Status** per element (:class:`~controllers.problem.Reason`): ``NONFINITE_INPUT`` for a NaN/inf in one
+element's state or reference (its control is NaN, the others are untouched), ``SINGULAR_QUU`` where the
+QP Hessian is not positive definite, ``MAX_ITERATIONS``/``STALLED`` where the box QP or the iteration
+did not certify its point.  A state off the manifold is a ``ValueError`` naming the argument.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import torch
+from torch import Tensor
+
+from controllers._validate import all_finite, enum_arg
+from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics
+from controllers.problem import GradMode, LQProblem, Reason, SolverStatus
+
+__all__ = [
+    "ManifoldSystem",
+    "manifold_step",
+    "manifold_rollout",
+    "system_jacobians",
+    "ErrorSystem",
+    "error_system",
+    "ErrorStateSolution",
+    "ErrorStateMPC",
+    "time_index",
+    "time_slice",
+    "riccati_terminal_weight",
+]
+
+
+@runtime_checkable
+class ManifoldSystem(Protocol):
+    """A system ``x_{k+1} = x_k ⊕ Δt f(x_k, u_k)`` on a manifold (module docstring)."""
+
+    manifold: Any
+    n: int
+    m: int
+    dt: float
+
+    def f(self, x, u: Tensor) -> Tensor: ...
+
+
+# --------------------------------------------------------------------------------------------------
+# points with a time dim: tensors (event dims trailing) or ProductStates (batch dims only)
+# --------------------------------------------------------------------------------------------------
+
+
+def _event_ndim(M) -> int:
+    return len(M.event_shape) if not hasattr(M, "components") else 0
+
+
+def time_slice(M, x, sl: slice):
+    """``x[..., sl]`` along the last batch dim (time) of a point (a tensor or a ``ProductState``) of ``M``."""
+    k = _event_ndim(M)
+    if k == 0:
+        return x[..., sl] if not isinstance(x, Tensor) else x[(..., sl)]
+    return x[(..., sl) + (slice(None),) * k]
+
+
+def time_index(M, x, i: int):
+    """The point at time ``i`` (the last batch dim removed)."""
+    k = _event_ndim(M)
+    if isinstance(x, Tensor):
+        return x[(..., i) + (slice(None),) * k]
+    return x[..., i]
+
+
+def _batch_shape(M, x) -> torch.Size:
+    return M._batch_shape(x)
+
+
+def _leaves(x):
+    return list(x.values()) if not isinstance(x, Tensor) else [x]
+
+
+def _point_finite(M, x) -> Tensor:
+    """``(*B,)`` bool: every entry of the point finite."""
+    out = None
+    for leaf, k in _leaf_ndims(M, x):
+        f = all_finite(leaf, k)
+        out = f if out is None else out & f
+    return out
+
+
+def _leaf_ndims(M, x):
+    if isinstance(x, Tensor):
+        return [(x, len(M.event_shape))]
+    out = []
+    for name, t in x.items():
+        if isinstance(t, Tensor):
+            out.append((t, x.event_ndims[name]))
+        else:
+            out.extend(_leaf_ndims(M.components[name], t))
+    return out
+
+
+def _where_point(M, mask: Tensor, a, b):
+    """Elementwise ``a if mask else b`` over the batch dims of two points."""
+    if isinstance(a, Tensor):
+        k = len(M.event_shape)
+        return torch.where(mask.reshape(*mask.shape, *([1] * k)), a, b)
+    data = {}
+    for name in a.keys():
+        data[name] = _where_point(M.components[name], mask, a[name], b[name])
+    return type(a)._make(data, a.event_ndims)
+
+
+def _flatten_point(M, x, nd: int):
+    """The first ``nd`` batch dims flattened into one."""
+    k = _event_ndim(M)
+    if isinstance(x, Tensor):
+        return x.reshape(-1, *x.shape[x.dim() - k:])
+    return x.reshape(-1)
+
+
+def _expand_point(M, x, batch):
+    k = _event_ndim(M)
+    if isinstance(x, Tensor):
+        return x.expand(*batch, *x.shape[x.dim() - k:])
+    return x.expand(*batch)
+
+
+# --------------------------------------------------------------------------------------------------
+# stepping and the system-specific Jacobians
+# --------------------------------------------------------------------------------------------------
+
+
+def manifold_step(system: ManifoldSystem, x, u: Tensor):
+    """``x ⊕ Δt f(x, u)`` (Eq. 14), unchecked (the caller checked ``x``)."""
+    return system.manifold.oplus(x, system.dt * system.f(x, u), check=False)
+
+
+def manifold_rollout(system: ManifoldSystem, x0, u: Tensor):
+    """States ``x_0 .. x_T`` from ``x0`` (batch ``*B``) and controls ``u (*B, T, m)``; a point with batch
+    ``(*B, T+1)``."""
+    M = system.manifold
+    xs = [x0]
+    for k in range(u.shape[-2]):
+        xs.append(manifold_step(system, xs[-1], u[..., k, :]))
+    return _stack_points(M, xs)
+
+
+def _stack_points(M, xs: list):
+    if isinstance(xs[0], Tensor):
+        k = len(M.event_shape)
+        batch = torch.broadcast_shapes(*(x.shape[:x.dim() - k] for x in xs))
+        return torch.stack([x.expand(*batch, *x.shape[x.dim() - k:]) for x in xs], -k - 1)
+    batch = torch.broadcast_shapes(*(x.batch_shape for x in xs))
+    return type(xs[0]).stack([x.expand(*batch) for x in xs], dim=len(batch))
+
+
+def system_jacobians(system: ManifoldSystem, x, u: Tensor, method: str = "auto"
+                     ) -> tuple[Tensor, Tensor, Tensor]:
+    """``(f(x, u) (*B, l), ∂f(x ⊞ δx, u)/∂δx (*B, l, n), ∂f(x, u + δu)/∂δu (*B, l, m))`` at δ = 0.
+
+    ``method``: ``"auto"`` (the system's ``f_jacobians`` when it has one), ``"analytic"`` or
+    ``"autograd"`` (``torch.func.jacrev`` of the batch sum, so ``f`` must not mix batch elements).
+    """
+    if method not in ("auto", "analytic", "autograd"):
+        raise ValueError(f"system_jacobians: argument 'method' must be 'auto', 'analytic' or 'autograd', "
+                         f"got {method!r}")
+    M = system.manifold
+    analytic = getattr(system, "f_jacobians", None)
+    if method == "analytic" and analytic is None:
+        raise ValueError("system_jacobians: method='analytic' needs a system with 'f_jacobians'")
+    fv = system.f(x, u)
+    batch = torch.broadcast_shapes(fv.shape[:-1], u.shape[:-1], _batch_shape(M, x))
+    if analytic is not None and method != "autograd":
+        Jx, Ju = analytic(x, u)
+    else:
+        n, m, l = M.dim, u.shape[-1], fv.shape[-1]
+        xb = _expand_point(M, x, batch)
+        ub = u.expand(*batch, m)
+
+        def fx(d):
+            return system.f(M.boxplus(xb, d, check=False), ub).reshape(-1, l).sum(0)
+
+        def fu(d):
+            return system.f(xb, ub + d).reshape(-1, l).sum(0)
+
+        Jx = torch.func.jacrev(fx)(fv.new_zeros(*batch, n)).movedim(0, -2)
+        Ju = torch.func.jacrev(fu)(fv.new_zeros(*batch, m)).movedim(0, -2)
+    l = fv.shape[-1]
+    return fv.expand(*batch, l), Jx.expand(*batch, *Jx.shape[-2:]), Ju.expand(*batch, *Ju.shape[-2:])
+
+
+# --------------------------------------------------------------------------------------------------
+# the linearized error system
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorSystem:
+    """``δx_{k+1} = A_k δx_k + B_k δu_k + c_k`` about ``(x̄, ū)``: ``A (*B, N, n, n)``, ``B (*B, N, n, m)``,
+    ``c (*B, N, n)``."""
+
+    A: Tensor
+    B: Tensor
+    c: Tensor
+
+
+def error_system(system: ManifoldSystem, x_bar, u_bar: Tensor, *, jacobians: str = "auto",
+                 exact_G: bool = False, exact_reference: bool = False) -> ErrorSystem:
+    """Linearize the canonical system about ``x̄`` (a point with batch ``(*B, N+1)``) and ``ū (*B, N, m)``
+    (Eq. 20–23); ``c_k = (x̄_k ⊕ Δt f(x̄_k, ū_k)) ⊟ x̄_{k+1}``.
+
+    ``A = F_x``, ``B = F_u`` of Eq. 21–22 are the exact derivatives of the error map
+    ``δx_{k+1} = ((x̄_k ⊞ δx) ⊕ Δt f(x̄_k ⊞ δx, ū_k + δu)) ⊟ x̄_{k+1}`` when ``x̄`` is a trajectory of the
+    model (``c = 0``, the paper's assumption, and the case of :meth:`ErrorStateMPC.iterate`).  For an
+    infeasible ``x̄`` they are exact up to a factor ``I + O(‖c‖)`` (the derivative of ``⊟`` at ``c``);
+    ``exact_reference=True`` includes that factor (by autograd, one more Jacobian per step).
+    """
+    M = system.manifold
+    N = u_bar.shape[-2]
+    xk = time_slice(M, x_bar, slice(0, N))
+    fv, Jx, Ju = system_jacobians(system, xk, u_bar, jacobians)
+    v = system.dt * fv
+    A, B = M.linearize(xk, v, system.dt, Jx, Ju, exact=exact_G, check=False)
+    nxt = M.oplus(xk, v, check=False)
+    target = time_slice(M, x_bar, slice(1, N + 1))
+    c = M.boxminus(nxt, target, check=False)
+    if exact_reference:
+        Dm = _boxminus_jacobian(M, nxt, target)
+        A, B = Dm @ A, Dm @ B
+    return ErrorSystem(A=A, B=B, c=c)
+
+
+def riccati_terminal_weight(system: ManifoldSystem, x_d, u_d: Tensor, Q: Tensor, R: Tensor, *,
+                            max_iter: int = 5000, tol: float | None = None) -> tuple[Tensor, Tensor]:
+    """The infinite-horizon LQR weight ``P = Q + AᵀPA − AᵀPB (R + BᵀPB)⁻¹ BᵀPA`` of the error system at
+    a trim point ``(x_d, u_d)`` with ``x_d ⊕ Δt f(x_d, u_d) = x_d`` (e.g. hover), by the Riccati
+    iteration from ``P = Q``.
+
+    A short horizon sees little of a slow mode (the quadrotor's position reacts to a body rate through
+    three integrations: over the paper's 8 steps of 10 ms hardly at all); this ``P`` as the terminal
+    weight makes the MPC behave like the infinite-horizon LQR near the trim point.  Returns ``(P, done)``
+    with ``done`` ``(*B,)`` bool: the relative change fell below ``tol`` (default ``sqrt(eps)``).
+    """
+    M = system.manifold
+    n, m = M.dim, u_d.shape[-1]
+    Q = _weight(Q, n, "Q", "riccati_terminal_weight")
+    R = _weight(R, m, "R", "riccati_terminal_weight")
+    xs = _stack_points(M, [x_d, x_d])
+    es = error_system(system, xs, u_d.unsqueeze(-2))
+    A, B = es.A[..., 0, :, :], es.B[..., 0, :, :]
+    tol = torch.finfo(A.dtype).eps ** 0.5 if tol is None else tol
+    P = Q.expand(*A.shape[:-2], n, n)
+    done = torch.zeros(A.shape[:-2], dtype=torch.bool, device=A.device)
+    for _ in range(max_iter):
+        PB = P @ B
+        K = torch.linalg.solve(R + B.transpose(-1, -2) @ PB, PB.transpose(-1, -2) @ A)
+        Pn = Q + A.transpose(-1, -2) @ P @ A - (A.transpose(-1, -2) @ PB) @ K
+        Pn = 0.5 * (Pn + Pn.transpose(-1, -2))
+        done = ((Pn - P).flatten(-2).norm(dim=-1) <= tol * Pn.flatten(-2).norm(dim=-1))
+        P = Pn
+        if bool(done.all()):
+            break
+    return P, done
+
+
+# --------------------------------------------------------------------------------------------------
+# the controller
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class ErrorStateSolution:
+    """One error-state MPC solve.
+
+    Attributes:
+        u: ``(*B, m)`` the control to apply (Eq. 30).
+        U: ``(*B, N, m)`` the planned controls.
+        dx: ``(*B, N+1, n)`` predicted errors ``x_k ⊟ x^d_k`` (on the linear model; in
+            :meth:`ErrorStateMPC.iterate`, of the rolled-out trajectory).
+        cost: ``(*B,)`` the objective of the predicted plan (Eq. 15 on the linear model; the true cost in
+            :meth:`~ErrorStateMPC.iterate`).
+        status: per-element :class:`~controllers.problem.SolverStatus`.
+        kkt_residual: ``(*B,)`` the QP's (or the iteration's) certificate residual; 0 for the unconstrained
+            closed forms.
+        clamped: ``(*B, N, m)`` bool, controls held at a limit.
+        x: in :meth:`~ErrorStateMPC.iterate`, the rolled-out states (batch ``(*B, N+1)``); else None.
+    """
+
+    u: Tensor
+    U: Tensor
+    dx: Tensor
+    cost: Tensor
+    status: SolverStatus
+    kkt_residual: Tensor
+    clamped: Tensor
+    x: Any = None
+
+
+def _weight(W, size: int, name: str, fn: str) -> Tensor:
+    if not isinstance(W, Tensor) or not W.dtype.is_floating_point:
+        raise TypeError(f"{fn}: argument '{name}' must be a floating tensor, got {type(W).__name__}")
+    if W.dim() >= 1 and W.shape[-1] == size and (W.dim() == 1 or W.shape[-2] != size):
+        return torch.diag_embed(W)  # a diagonal given as a vector
+    if W.dim() >= 2 and W.shape[-2:] == (size, size):
+        return W
+    raise ValueError(f"{fn}: argument '{name}' must be ({size},) (a diagonal) or (*B, {size}, {size}), "
+                     f"got {tuple(W.shape)}")
+
+
+class ErrorStateMPC:
+    """Algorithm 1 of seed 003 (module docstring) for a batch of systems.
+
+    Args:
+        system: a :class:`ManifoldSystem`.
+        horizon: N.
+        Q, R: stage weights, ``(n,)``/``(m,)`` diagonals or ``(*B, n, n)``/``(*B, m, m)`` matrices (Q PSD,
+            R PD); P: terminal weight (default Q).
+        u_lower, u_upper: limits broadcastable to ``(*B, N, m)`` (default the system's ``u_lower``/
+            ``u_upper`` when it has them, else none); ``None`` or ±inf for no limit.
+        solver: ``"auto"``, ``"qp"`` (condensed, Eq. 28/31) or ``"riccati"`` (no limits only).
+        grad: :class:`~controllers.problem.GradMode` (``"implicit"``, ``"none"``; ``"unrolled"`` is
+            accepted by the Riccati path and treated as implicit by the QP path).
+        jacobians: ``"auto"``, ``"analytic"`` or ``"autograd"`` (:func:`system_jacobians`).
+        qp_options: keyword arguments for :func:`~controllers.boxqp.box_qp`.
+    """
+
+    def __init__(self, system: ManifoldSystem, horizon: int, Q: Tensor, R: Tensor, P: Tensor | None = None, *,
+                 u_lower: Tensor | float | None = None, u_upper: Tensor | float | None = None,
+                 solver: str = "auto", grad: GradMode | str = GradMode.IMPLICIT, jacobians: str = "auto",
+                 qp_options: dict | None = None):
+        fn = "ErrorStateMPC"
+        M = getattr(system, "manifold", None)
+        if M is None or not getattr(M, "has_boxplus", False):
+            raise TypeError(f"{fn}: argument 'system' must have a 'manifold' with ⊞/⊟/⊕ "
+                            f"(a torchlie.manifolds space), got {type(system).__name__}")
+        for attr in ("m", "dt", "f"):
+            if not hasattr(system, attr):
+                raise TypeError(f"{fn}: argument 'system' lacks '{attr}' (see ManifoldSystem)")
+        if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
+            raise ValueError(f"{fn}: argument 'horizon' must be a positive int, got {horizon!r}")
+        if solver not in ("auto", "qp", "riccati"):
+            raise ValueError(f"{fn}: argument 'solver' must be 'auto', 'qp' or 'riccati', got {solver!r}")
+        if jacobians not in ("auto", "analytic", "autograd"):
+            raise ValueError(f"{fn}: argument 'jacobians' must be 'auto', 'analytic' or 'autograd', "
+                             f"got {jacobians!r}")
+        self.system, self.manifold, self.N = system, M, horizon
+        self.n, self.m = M.dim, int(system.m)
+        self.Q = _weight(Q, self.n, "Q", fn)
+        self.R = _weight(R, self.m, "R", fn)
+        self.P = self.Q if P is None else _weight(P, self.n, "P", fn)
+        if u_lower is None:
+            u_lower = getattr(system, "u_lower", None)
+        if u_upper is None:
+            u_upper = getattr(system, "u_upper", None)
+        self.u_lower, self.u_upper = u_lower, u_upper
+        self.bounded = any(b is not None and bool(torch.isfinite(torch.as_tensor(b)).any())
+                           for b in (u_lower, u_upper))
+        if solver == "riccati" and self.bounded:
+            raise ValueError(f"{fn}: solver='riccati' cannot enforce control limits; use solver='qp', or "
+                             "u_lower=-inf and u_upper=inf to drop the system's limits")
+        self.solver = solver if solver != "auto" else ("qp" if self.bounded else "riccati")
+        self.grad = enum_arg(GradMode, grad, "grad", fn)
+        self.jacobians = jacobians
+        self.qp_options = dict(qp_options or {})
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _bounds(self, u_bar: Tensor) -> tuple[Tensor, Tensor]:
+        """Limits on ``δu = u − ū``, ``(*B, N, m)`` each (±inf where unbounded)."""
+        def as_t(b, inf):
+            if b is None:
+                return torch.full((), inf, dtype=u_bar.dtype, device=u_bar.device)
+            if isinstance(b, Tensor):
+                if b.dtype != u_bar.dtype or b.device != u_bar.device:
+                    raise TypeError(f"ErrorStateMPC: the limits must have u_ref's dtype and device "
+                                    f"({u_bar.dtype}, {u_bar.device}), got {b.dtype} on {b.device}")
+                return b
+            return torch.as_tensor(b, dtype=u_bar.dtype, device=u_bar.device)
+        lo, hi = as_t(self.u_lower, -torch.inf), as_t(self.u_upper, torch.inf)
+        return lo - u_bar, hi - u_bar
+
+    def _prepare(self, x0, x_ref, u_ref: Tensor, fn: str):
+        M, N, m = self.manifold, self.N, self.m
+        if not isinstance(u_ref, Tensor) or u_ref.dim() < 2 or u_ref.shape[-2:] != (N, m):
+            raise ValueError(f"{fn}: argument 'u_ref' must have shape (*B, {N}, {m}) (horizon N={N}), "
+                             f"got {tuple(getattr(u_ref, 'shape', ()))}")
+        rb = _batch_shape(M, x_ref)
+        if len(rb) < 1 or rb[-1] != N + 1:
+            raise ValueError(f"{fn}: argument 'x_ref' must be a point of {M!r} with batch (*B, {N + 1}) "
+                             f"(N+1 reference states), got batch {tuple(rb)}")
+        x0b = _batch_shape(M, x0)
+        try:
+            batch = torch.broadcast_shapes(x0b, rb[:-1], u_ref.shape[:-2])
+        except RuntimeError as e:
+            raise ValueError(f"{fn}: batch shapes of x0 {tuple(x0b)}, x_ref {tuple(rb[:-1])} and u_ref "
+                             f"{tuple(u_ref.shape[:-2])} do not broadcast") from e
+        leaf = _leaves(x0)[0]
+        for name, t in (("x_ref", _leaves(x_ref)[0]), ("u_ref", u_ref), ("Q", self.Q), ("R", self.R)):
+            if t.dtype != leaf.dtype or t.device != leaf.device:
+                raise TypeError(f"{fn}: argument '{name}' must have x0's dtype and device ({leaf.dtype}, "
+                                f"{leaf.device}), got {t.dtype} on {t.device}")
+        x0 = _expand_point(M, x0, batch)
+        x_ref = _expand_point(M, x_ref, (*batch, N + 1))
+        u_ref = u_ref.expand(*batch, N, m)
+        # one bad element never poisons the batch: replace it by its reference, report it, NaN its output
+        ok = _point_finite(M, x0) & _point_finite(M, x_ref).all(-1) & all_finite(u_ref, 2)
+        if not bool(ok.all()):
+            if not bool(ok.any()):
+                raise ValueError(f"{fn}: every element of the batch has a NaN/inf in x0, x_ref or u_ref")
+            # stand-ins from a good element (any point of M will do: the outputs are NaN-ed afterwards)
+            good = int(ok.reshape(-1).nonzero()[0, 0])
+            flat_ref = _flatten_point(M, x_ref, len(batch) + 1)
+            stand = _expand_point(M, time_slice(M, flat_ref, slice(good * (N + 1), (good + 1) * (N + 1))),
+                                  (*batch, N + 1))
+            x_ref = _where_point(M, ok.unsqueeze(-1).expand(*batch, N + 1), x_ref, stand)
+            x0 = _where_point(M, ok, x0, time_index(M, x_ref, 0))
+            u_ref = torch.where(ok[..., None, None], u_ref, torch.zeros((), dtype=u_ref.dtype))
+        M.check(x0, "x0")
+        M.check(x_ref, "x_ref")
+        return x0, x_ref, u_ref, ok, batch
+
+    def _weights(self, batch, dtype):
+        N, n = self.N, self.n
+        Qs = torch.cat([self.Q.expand(*batch, n, n).unsqueeze(-3).expand(*batch, N, n, n),
+                        self.P.expand(*batch, n, n).unsqueeze(-3)], -3)
+        return Qs
+
+    # -- one linear-quadratic solve on an error system ---------------------------------------------
+    def _solve_lq(self, es: ErrorSystem, dx0: Tensor, Qs: Tensor, q: Tensor | None, r: Tensor | None,
+                  lo: Tensor, hi: Tensor, warm: Tensor | None, *, solver: str, grad: GradMode):
+        """Minimize Σ δxᵀQ_kδx + 2q_kᵀδx + δuᵀRδu + 2r_kᵀδu on the error system (δx_0 given).
+
+        Returns ``(δU (*B, N, m), δX (*B, N+1, n), cost (*B,), reason (*B,), kkt (*B,), clamped)``."""
+        N, m = self.N, self.m
+        batch = dx0.shape[:-1]
+        dtype, dev = dx0.dtype, dx0.device
+        if solver == "riccati":
+            from controllers import riccati  # noqa: PLC0415  (riccati imports implicit; keep import cost lazy)
+
+            Rt = self.R if self.R.dim() == 2 else self.R.unsqueeze(-3)  # (*B, 1, m, m): one R for all t
+            cost = QuadraticCost(Q=Qs, R=Rt, q=q, r=r, check=False)
+            prob = LQProblem(LinearDynamics(es.A, es.B, es.c), cost, dx0, horizon=N)
+            sol = riccati.solve(prob, grad=grad, check=False)
+            reason = sol.status.reason
+            zeros = torch.zeros(batch, dtype=dtype, device=dev)
+            clamped = torch.zeros(*batch, N, m, dtype=torch.bool, device=dev)
+            return sol.u, sol.x, sol.cost, reason, zeros, clamped
+        Su, free_x = _condense(es, dx0)  # (*B, N+1, n, Nm), (*B, N+1, n): δX = Su δU + free_x
+        QSu = Qs @ Su  # (*B, N+1, n, Nm)
+        Rb = self.R.expand(*batch, m, m)
+        eyeN = torch.eye(N, dtype=dtype, device=dev)
+        H = torch.einsum("...kia,...kib->...ab", Su, QSu) \
+            + torch.einsum("ij,...ab->...iajb", eyeN, Rb).reshape(*batch, N * m, N * m)
+        Qe = (Qs @ free_x.unsqueeze(-1)).squeeze(-1)
+        if q is not None:
+            Qe = Qe + q
+        g = torch.einsum("...kia,...ki->...a", Su, Qe)
+        if r is not None:
+            g = g + r.reshape(*batch, N * m)
+        # the unconstrained minimizer (Eq. 31); where it respects the limits it is the constrained one
+        L, info = torch.linalg.cholesky_ex(H)
+        dU = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
+        reason = torch.where(info == 0, 0, int(Reason.SINGULAR_QUU))
+        clamped = torch.zeros(*batch, N * m, dtype=torch.bool, device=dev)
+        with torch.no_grad():
+            kkt = (H @ dU.unsqueeze(-1)).squeeze(-1).add_(g).norm(dim=-1)
+        if self.bounded:
+            lo = lo.expand(*batch, N, m).reshape(*batch, N * m)
+            hi = hi.expand(*batch, N, m).reshape(*batch, N * m)
+            with torch.no_grad():
+                inside = bool(((dU >= lo) & (dU <= hi)).all())
+            if not inside:
+                dU, reason, kkt, clamped = self._box(H, g, lo, hi, dU, warm, grad)
+        dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
+        dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
+        dUr = dU.reshape(*batch, N, m)
+        cost = ((dX.unsqueeze(-2) @ Qs @ dX.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1) \
+            + ((dUr.unsqueeze(-2) @ Rb.unsqueeze(-3) @ dUr.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1)
+        if q is not None:
+            cost = cost + 2 * (q * dX).sum((-2, -1))
+        if r is not None:
+            cost = cost + 2 * (r * dUr).sum((-2, -1))
+        return dUr, dX, cost, reason.to(torch.int64), kkt, clamped.reshape(*batch, N, m)
+
+    def _box(self, H, g, lo, hi, start, warm, grad):
+        """The box QP (28) from the clipped unconstrained minimizer (or the warm start), certified by
+        :func:`box_qp`; differentiable through the active set it found."""
+        batch, Nm = g.shape[:-1], g.shape[-1]
+        with torch.no_grad():
+            x0 = start.detach() if warm is None else warm.reshape(*batch, Nm)
+            x0 = torch.nan_to_num(x0, nan=0.0)
+            res = box_qp(H.detach(), g.detach(), lo.detach(), hi.detach(), x0, check=False, **self.qp_options)
+        st = res.status
+        failed = torch.where(st == BoxQPStatus.MAX_ITERATIONS, int(Reason.MAX_ITERATIONS),
+                             int(Reason.STALLED))
+        failed = torch.where(st == BoxQPStatus.NOT_POSITIVE_DEFINITE, int(Reason.SINGULAR_QUU), failed)
+        reason = torch.where(res.converged, 0, failed)
+        reason = torch.where(st == BoxQPStatus.NON_FINITE, int(Reason.NONFINITE_INPUT), reason)
+        dU = res.x
+        if grad is not GradMode.NONE and torch.is_grad_enabled() and (
+                H.requires_grad or g.requires_grad or lo.requires_grad or hi.requires_grad):
+            dU = _active_set_solve(H, g, lo, hi, res.clamped, dU)
+        return dU, reason, res.kkt_residual, res.clamped
+
+    # -- Algorithm 1 ---------------------------------------------------------------------------------
+    def solve(self, x0, x_ref, u_ref: Tensor, *, warm: Tensor | None = None) -> ErrorStateSolution:
+        """One MPC step (Algorithm 1): linearize about the reference, solve, return ``u = u^d_0 + δu_0``.
+
+        Args:
+            x0: the current state, a point with batch ``*B``.
+            x_ref: N+1 reference states, a point with batch ``(*B, N+1)``.
+            u_ref: ``(*B, N, m)`` reference controls.
+            warm: optional ``(*B, N, m)`` controls (absolute) to warm-start the box QP, e.g. the previous
+                plan shifted (:func:`controllers.mpc.shift`).
+        """
+        fn = "ErrorStateMPC.solve"
+        x0, x_ref, u_ref, ok, batch = self._prepare(x0, x_ref, u_ref, fn)
+        M = self.manifold
+        es = error_system(self.system, x_ref, u_ref, jacobians=self.jacobians)
+        dx0 = M.boxminus(x0, time_index(M, x_ref, 0), check=False)
+        lo, hi = self._bounds(u_ref)
+        w = None if warm is None else (warm.detach() - u_ref.detach())
+        Qs = self._weights(batch, dx0.dtype)
+        dU, dX, cost, reason, kkt, clamped = self._solve_lq(es, dx0, Qs, None, None, lo, hi, w,
+                                                            solver=self.solver, grad=self.grad)
+        U = u_ref + dU
+        reason = torch.where(ok, reason, int(Reason.NONFINITE_INPUT))
+        nan = torch.full((), torch.nan, dtype=U.dtype, device=U.device)
+        U = torch.where(ok[..., None, None], U, nan)
+        return ErrorStateSolution(u=U[..., 0, :], U=U, dx=torch.where(ok[..., None, None], dX, nan),
+                                  cost=torch.where(ok, cost, nan), status=SolverStatus.from_reason(reason),
+                                  kkt_residual=kkt, clamped=clamped)
+
+    __call__ = solve
+
+    # -- §V-D: iterate about rollouts ------------------------------------------------------------------
+    def iterate(self, x0, x_ref, u_ref: Tensor, *, u_init: Tensor | None = None, max_iter: int = 50,
+                tol: float | None = None, line_search_steps: int = 12) -> ErrorStateSolution:
+        """The iterated variant of §V-D (module docstring): returns a point certified by the projected
+        gradient of the true cost (``CONVERGED``), or ``MAX_ITERATIONS``/``STALLED`` honestly.
+
+        ``u_init`` ``(*B, N, m)``: the first linearization controls (default ``u_ref`` clipped to the
+        limits); ``tol``: relative projected-gradient tolerance (default ``sqrt(eps)`` of the dtype)."""
+        fn = "ErrorStateMPC.iterate"
+        x0, x_ref, u_ref, ok, batch = self._prepare(x0, x_ref, u_ref, fn)
+        M, N, m = self.manifold, self.N, self.m
+        dtype, dev = u_ref.dtype, u_ref.device
+        tol = torch.finfo(dtype).eps ** 0.5 if tol is None else tol
+        lo_abs, hi_abs = self._bounds(torch.zeros_like(u_ref))
+        lo_abs, hi_abs = lo_abs.expand(*batch, N, m), hi_abs.expand(*batch, N, m)
+        Qs = self._weights(batch, dtype)
+        Rb = self.R.expand(*batch, m, m)
+
+        def true_cost(x, U):
+            e = M.boxminus(x, x_ref, check=False)
+            du = U - u_ref
+            return ((e.unsqueeze(-2) @ Qs @ e.unsqueeze(-1)).sum((-3, -2, -1))
+                    + (du.unsqueeze(-2) @ Rb.unsqueeze(-3) @ du.unsqueeze(-1)).sum((-3, -2, -1))), e
+
+        with torch.no_grad():
+            U = (u_ref if u_init is None else u_init.expand(*batch, N, m)).detach()
+            U = torch.minimum(torch.maximum(U, lo_abs.detach()), hi_abs.detach())
+            x0d = _detach(x0)
+            xr, ur = _detach(x_ref), u_ref.detach()
+            x = manifold_rollout(self.system, x0d, U)
+            J, _ = true_cost(x, U)
+            reason = torch.full(batch, int(Reason.MAX_ITERATIONS), dtype=torch.int64, device=dev)
+            done = ~ok
+            iters = torch.zeros(batch, dtype=torch.int64, device=dev)
+            kkt = torch.full(batch, torch.inf, dtype=dtype, device=dev)
+            for _ in range(max_iter):
+                dU, gnorm, scale = self._gn_step(x, U, xr, ur, lo_abs.detach(), hi_abs.detach(), Qs.detach(),
+                                                 Rb.detach(), grad_mode=False)
+                kkt = torch.where(done, kkt, gnorm / scale)
+                conv = (gnorm <= tol * scale) & ~done
+                reason = torch.where(conv, int(Reason.CONVERGED), reason)
+                done = done | conv
+                if bool(done.all()):
+                    break
+                # backtracking on the true cost, all step lengths of the batch at once per trial
+                alpha = torch.ones(batch, dtype=dtype, device=dev)
+                accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
+                newU, newx, newJ = U, x, J
+                for _ls in range(line_search_steps):
+                    Ut = torch.minimum(torch.maximum(U + alpha[..., None, None] * dU, lo_abs.detach()),
+                                       hi_abs.detach())
+                    xt = manifold_rollout(self.system, x0d, Ut)
+                    Jt, _ = true_cost(xt, Ut)
+                    good = (Jt < J) & ~accepted & ~done & torch.isfinite(Jt)
+                    newU = torch.where(good[..., None, None], Ut, newU)
+                    newx = _where_point(M, good.unsqueeze(-1).expand(*batch, N + 1), xt, newx)
+                    newJ = torch.where(good, Jt, newJ)
+                    accepted = accepted | good
+                    if bool((accepted | done).all()):
+                        break
+                    alpha = torch.where(accepted, alpha, alpha * 0.5)
+                stalled = ~accepted & ~done
+                reason = torch.where(stalled, int(Reason.STALLED), reason)
+                done = done | stalled
+                iters = iters + accepted.to(torch.int64)
+                U, x, J = newU, newx, newJ
+        # the returned point, differentiable: one Gauss-Newton step at the (detached) solution
+        need_grad = self.grad is not GradMode.NONE and torch.is_grad_enabled()
+        if need_grad:
+            dU, _, _ = self._gn_step(x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, Rb, grad_mode=True)
+            U = U + dU
+            x = manifold_rollout(self.system, x0, U)
+        Jfin, e = true_cost(x, U)
+        reason = torch.where(ok, reason, int(Reason.NONFINITE_INPUT))
+        nan = torch.full((), torch.nan, dtype=dtype, device=dev)
+        U = torch.where(ok[..., None, None], U, nan)
+        clamped = (U <= lo_abs) | (U >= hi_abs)
+        return ErrorStateSolution(u=U[..., 0, :], U=U, dx=torch.where(ok[..., None, None], e, nan),
+                                  cost=torch.where(ok, Jfin, nan),
+                                  status=SolverStatus.from_reason(reason, iters),
+                                  kkt_residual=torch.where(ok, kkt, nan), clamped=clamped, x=x)
+
+    def _gn_step(self, x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, Rb, *, grad_mode: bool):
+        """The Gauss–Newton QP step about the rollout ``(x, U)`` and the projected-gradient norm at ``U``."""
+        M, N, m = self.manifold, self.N, self.m
+        batch = U.shape[:-2]
+        es = error_system(self.system, x, U, jacobians=self.jacobians)
+        e = M.boxminus(x, x_ref, check=False)  # (*B, N+1, n)
+        Jm = _boxminus_jacobian(M, x, x_ref)  # (*B, N+1, n, n)
+        Qt = Jm.transpose(-1, -2) @ Qs @ Jm
+        q = (Jm.transpose(-1, -2) @ (Qs @ e.unsqueeze(-1))).squeeze(-1)
+        r = (Rb.unsqueeze(-3) @ (U - u_ref).unsqueeze(-1)).squeeze(-1)
+        dx0 = torch.zeros(*batch, self.n, dtype=U.dtype, device=U.device)
+        lo, hi = lo_abs - U, hi_abs - U
+        # the condensed form even without limits: the certificate below needs S_u anyway
+        dU = self._solve_lq(es, dx0, Qt, q, r, lo, hi, None, solver="qp",
+                            grad=self.grad if grad_mode else GradMode.NONE)[0]
+        # gradient of the true cost w.r.t. U (exact: the first-order terms of the model are exact)
+        Su, _ = _condense(ErrorSystem(es.A, es.B, torch.zeros_like(es.c)), dx0)
+        grad = 2 * (torch.einsum("...kia,...ki->...a", Su, q) + r.reshape(*batch, N * m))
+        Uf = U.reshape(*batch, N * m)
+        proj = Uf - torch.minimum(torch.maximum(Uf - grad, lo_abs.reshape(*batch, N * m)),
+                                  hi_abs.reshape(*batch, N * m))
+        gnorm = proj.norm(dim=-1)
+        # the two halves of the gradient balance at an optimum: their sizes are the residual's scale
+        scale = 2 * torch.einsum("...kia,...ki->...a", Su, q).norm(dim=-1) + 2 * r.flatten(-2).norm(dim=-1) \
+            + torch.finfo(U.dtype).tiny
+        return dU, gnorm, scale.expand(batch)
+
+
+def _condense(es: ErrorSystem, dx0: Tensor) -> tuple[Tensor, Tensor]:
+    """``δX = S_u δU + (S_x δx_0 + s_c)`` (Eq. 25–27 with the drift): ``S_u (*B, N+1, n, N m)`` and the
+    free response ``(*B, N+1, n)``, by one pass ``row_{k+1} = A_k row_k + [B_k E_k | c_k]`` over the
+    augmented rows ``[S_u | free]``."""
+    A, B, c = es.A, es.B, es.c
+    N, n, m = B.shape[-3], B.shape[-2], B.shape[-1]
+    batch = torch.broadcast_shapes(A.shape[:-3], B.shape[:-3], c.shape[:-2], dx0.shape[:-1])
+    eyeN = torch.eye(N, dtype=B.dtype, device=B.device)
+    Bfull = torch.einsum("kj,...kia->...kija", eyeN, B).reshape(*B.shape[:-3], N, n, N * m)
+    add = torch.cat([Bfull.expand(*batch, N, n, N * m), c.expand(*batch, N, n).unsqueeze(-1)], -1)
+    row = torch.cat([dx0.new_zeros(*batch, n, N * m), dx0.expand(*batch, n).unsqueeze(-1)], -1)
+    A = A.expand(*batch, N, n, n)
+    rows = [row]
+    for k in range(N):
+        row = A[..., k, :, :] @ row + add[..., k, :, :]
+        rows.append(row)
+    Z = torch.stack(rows, -3)
+    return Z[..., :-1], Z[..., -1]
+
+
+def _detach(x):
+    return x.detach()
+
+
+def _boxminus_jacobian(M, x_bar, x_ref) -> Tensor:
+    """``∂((x̄ ⊞ δ) ⊟ x^d)/∂δ`` at δ = 0, ``(*B, n, n)``, by ``jacrev`` of the batch sum."""
+    n = M.dim
+    batch = torch.broadcast_shapes(_batch_shape(M, x_bar), _batch_shape(M, x_ref))
+    xb = _expand_point(M, x_bar, batch)
+
+    def expr(d):
+        return M.boxminus(M.boxplus(xb, d, check=False), x_ref, check=False).reshape(-1, n).sum(0)
+
+    leaf = _leaves(x_bar)[0]
+    return torch.func.jacrev(expr)(leaf.new_zeros(*batch, n)).movedim(0, -2)
+
+
+def _active_set_solve(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, clamped: Tensor, x: Tensor) -> Tensor:
+    """The box-QP minimizer recomputed with autograd on the active set found by the solver: clamped
+    components at their (differentiable) bounds, the free ones from ``H_ff x_f = −(g + H_fc x_c)``."""
+    mid = 0.5 * (lo.detach() + hi.detach())
+    at_lo = clamped & (x.detach() <= torch.where(torch.isfinite(mid), mid, x.detach()))
+    xc = torch.where(clamped, torch.where(at_lo, lo, hi), torch.zeros((), dtype=H.dtype))
+    xc = torch.where(clamped, xc, torch.zeros((), dtype=H.dtype))
+    free = ~clamped
+    rhs = -(g + (H @ xc.unsqueeze(-1)).squeeze(-1))
+    rhs = torch.where(free, rhs, torch.zeros((), dtype=H.dtype))
+    L, _ = torch.linalg.cholesky_ex(masked_hessian(H, free))
+    xf = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
+    return torch.where(free, xf, xc)
