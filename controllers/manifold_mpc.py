@@ -61,6 +61,7 @@ did not certify its point.  A state off the manifold is a ``ValueError`` naming 
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
 
@@ -85,6 +86,8 @@ __all__ = [
     "time_index",
     "time_slice",
     "riccati_terminal_weight",
+    "TrackingRun",
+    "track",
 ]
 
 
@@ -403,6 +406,8 @@ class ErrorStateMPC:
         self.Q = _weight(Q, self.n, "Q", fn)
         self.R = _weight(R, self.m, "R", fn)
         self.P = self.Q if P is None else _weight(P, self.n, "P", fn)
+        # the system's own limits follow the data's dtype/device; limits passed here must match them
+        self._own_limits = (u_lower is None, u_upper is None)
         if u_lower is None:
             u_lower = getattr(system, "u_lower", None)
         if u_upper is None:
@@ -421,16 +426,19 @@ class ErrorStateMPC:
     # -- helpers ---------------------------------------------------------------------------------
     def _bounds(self, u_bar: Tensor) -> tuple[Tensor, Tensor]:
         """Limits on ``δu = u − ū``, ``(*B, N, m)`` each (±inf where unbounded)."""
-        def as_t(b, inf):
+        def as_t(b, inf, own):
             if b is None:
                 return torch.full((), inf, dtype=u_bar.dtype, device=u_bar.device)
+            if isinstance(b, Tensor) and own:
+                return b.to(dtype=u_bar.dtype, device=u_bar.device)
             if isinstance(b, Tensor):
                 if b.dtype != u_bar.dtype or b.device != u_bar.device:
                     raise TypeError(f"ErrorStateMPC: the limits must have u_ref's dtype and device "
                                     f"({u_bar.dtype}, {u_bar.device}), got {b.dtype} on {b.device}")
                 return b
             return torch.as_tensor(b, dtype=u_bar.dtype, device=u_bar.device)
-        lo, hi = as_t(self.u_lower, -torch.inf), as_t(self.u_upper, torch.inf)
+        lo = as_t(self.u_lower, -torch.inf, self._own_limits[0])
+        hi = as_t(self.u_upper, torch.inf, self._own_limits[1])
         return lo - u_bar, hi - u_bar
 
     def _prepare(self, x0, x_ref, u_ref: Tensor, fn: str):
@@ -500,15 +508,17 @@ class ErrorStateMPC:
             clamped = torch.zeros(*batch, N, m, dtype=torch.bool, device=dev)
             return sol.u, sol.x, sol.cost, reason, zeros, clamped
         Su, free_x = _condense(es, dx0)  # (*B, N+1, n, Nm), (*B, N+1, n): δX = Su δU + free_x
-        QSu = Qs @ Su  # (*B, N+1, n, Nm)
+        n = Su.shape[-2]
+        QSu = (Qs @ Su).reshape(*batch, (N + 1) * n, N * m)  # Q̄ S_u, block rows
+        SuT = Su.reshape(*batch, (N + 1) * n, N * m).transpose(-1, -2)
         Rb = self.R.expand(*batch, m, m)
         eyeN = torch.eye(N, dtype=dtype, device=dev)
-        H = torch.einsum("...kia,...kib->...ab", Su, QSu) \
-            + torch.einsum("ij,...ab->...iajb", eyeN, Rb).reshape(*batch, N * m, N * m)
+        Rbar = (eyeN[:, None, :, None] * Rb[..., None, :, None, :]).reshape(*batch, N * m, N * m)
+        H = SuT @ QSu + Rbar
         Qe = (Qs @ free_x.unsqueeze(-1)).squeeze(-1)
         if q is not None:
             Qe = Qe + q
-        g = torch.einsum("...kia,...ki->...a", Su, Qe)
+        g = (SuT @ Qe.reshape(*batch, (N + 1) * n, 1)).squeeze(-1)
         if r is not None:
             g = g + r.reshape(*batch, N * m)
         # the unconstrained minimizer (Eq. 31); where it respects the limits it is the constrained one
@@ -525,7 +535,6 @@ class ErrorStateMPC:
                 inside = bool(((dU >= lo) & (dU <= hi)).all())
             if not inside:
                 dU, reason, kkt, clamped = self._box(H, g, lo, hi, dU, warm, grad)
-        dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
         dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
         dUr = dU.reshape(*batch, N, m)
         cost = ((dX.unsqueeze(-2) @ Qs @ dX.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1) \
@@ -705,7 +714,7 @@ def _condense(es: ErrorSystem, dx0: Tensor) -> tuple[Tensor, Tensor]:
     N, n, m = B.shape[-3], B.shape[-2], B.shape[-1]
     batch = torch.broadcast_shapes(A.shape[:-3], B.shape[:-3], c.shape[:-2], dx0.shape[:-1])
     eyeN = torch.eye(N, dtype=B.dtype, device=B.device)
-    Bfull = torch.einsum("kj,...kia->...kija", eyeN, B).reshape(*B.shape[:-3], N, n, N * m)
+    Bfull = (eyeN[:, None, :, None] * B.unsqueeze(-2)).reshape(*B.shape[:-3], N, n, N * m)
     add = torch.cat([Bfull.expand(*batch, N, n, N * m), c.expand(*batch, N, n).unsqueeze(-1)], -1)
     row = torch.cat([dx0.new_zeros(*batch, n, N * m), dx0.expand(*batch, n).unsqueeze(-1)], -1)
     A = A.expand(*batch, N, n, n)
@@ -747,3 +756,63 @@ def _active_set_solve(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, clamped: Ten
     L, _ = torch.linalg.cholesky_ex(masked_hessian(H, free))
     xf = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
     return torch.where(free, xf, xc)
+
+
+# --------------------------------------------------------------------------------------------------
+# closed loop
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, eq=False)
+class TrackingRun:
+    """A closed-loop run of :func:`track`.
+
+    Attributes:
+        x: the simulated states, a point with batch ``(*B, steps+1)``.
+        u: ``(*B, steps, m)`` applied controls (before the simulator's own saturation).
+        solve_s: ``(steps,)`` wall-clock seconds of each MPC solve (the whole batch; ``time.perf_counter``,
+            with a device synchronization on CUDA).
+        reason: ``(*B, steps)`` the solve's :class:`~controllers.problem.Reason` codes.
+    """
+
+    x: Any
+    u: Tensor
+    solve_s: Tensor
+    reason: Tensor
+
+
+def track(mpc: ErrorStateMPC, simulate, x0, x_ref, u_ref: Tensor, steps: int, *, observe=None,
+          warm_start: bool = True) -> TrackingRun:
+    """Run Algorithm 1 in closed loop: at step k the MPC sees the reference window ``k .. k+N`` of
+    ``x_ref`` (batch ``(*B, K)``, K ≥ steps + N + 1) and ``u_ref`` ``(*B, K-1, m)`` (or longer), and the
+    simulator ``simulate(x, u) -> x_next`` (the "real" system, e.g. :class:`QuadrotorSimulator`) moves on.
+    ``observe(x)`` maps a simulator state to the MPC's state space (default: identity; e.g. a projection
+    onto the MPC's surface).  ``warm_start``: the box QP starts from the previous plan shifted.
+    """
+    M, N = mpc.manifold, mpc.N
+    K = _batch_shape(M, x_ref)[-1]
+    if K < steps + N + 1 or u_ref.shape[-2] < steps + N:
+        raise ValueError(f"track: the reference must cover steps + N + 1 = {steps + N + 1} states and "
+                         f"steps + N = {steps + N} controls, got {K} and {u_ref.shape[-2]}")
+    xs, us, times, reasons = [x0], [], [], []
+    x, warm = x0, None
+    sync = _leaves(x0)[0].device.type == "cuda"
+    for k in range(steps):
+        xr = time_slice(M, x_ref, slice(k, k + N + 1))
+        ur = u_ref[..., k:k + N, :]
+        obs = x if observe is None else observe(x)
+        if sync:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        sol = mpc.solve(obs, xr, ur, warm=warm if warm_start else None)
+        if sync:
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+        warm = torch.cat([sol.U[..., 1:, :], sol.U[..., -1:, :]], -2).detach()
+        warm = torch.nan_to_num(warm)
+        x = simulate(x, sol.u)
+        xs.append(x)
+        us.append(sol.u)
+        reasons.append(sol.status.reason)
+    return TrackingRun(x=_stack_points(M, xs), u=torch.stack(us, -2), solve_s=torch.tensor(times),
+                       reason=torch.stack(reasons, -1))

@@ -446,8 +446,19 @@ class Manifold(abc.ABC):
         if not (isinstance(df_du, torch.Tensor) and df_du.dim() >= 2 and df_du.shape[-2] == l):
             raise ValueError(f"{fn}: argument 'df_du' must have shape (*, {l}, m), "
                              f"got {tuple(getattr(df_du, 'shape', ()))}")
-        Gx = self.G_x(x_d, v, exact=exact, project=project, check=check)
-        Gf = self.G_f(x_d, v, exact=exact, project=project, check=check)
+        if exact:
+            Gx = self.G_x(x_d, v, exact=True, project=project, check=check)
+            Gf = self.G_f(x_d, v, exact=True, project=project, check=check)
+            return Gx + dt * (Gf @ df_dx), dt * (Gf @ df_du)
+        x_d, v = self._prep_G(x_d, v, fn, project, check)
+        return self._linearize(x_d, v, dt, df_dx, df_du)
+
+    #: G_x = G_f = I exactly (Rⁿ, SO(2), surfaces: Table I); lets products skip the matrix products
+    _G_identity: bool = False
+
+    def _linearize(self, x_d, v, dt, df_dx, df_du):
+        """``(G_x + Δt G_f ∂f/∂δx, Δt G_f ∂f/∂δu)`` on checked arguments (products override it)."""
+        Gx, Gf = self._G_x(x_d, v), self._G_f(x_d, v)
         return Gx + dt * (Gf @ df_dx), dt * (Gf @ df_du)
 
     # --- Exp/Log vocabulary (seed 004 §12) ----------------------------------------------------------

@@ -105,6 +105,8 @@ class Rn(Manifold):
     def _tm(self, x, y):
         return _eye(self.n, torch.broadcast_shapes(x.shape[:-1], y.shape[:-1]), x)
 
+    _G_identity = True
+
     def _G_x(self, x_d, v):
         return _eye(self.n, torch.broadcast_shapes(x_d.shape[:-1], v.shape[:-1]), v)
 
@@ -163,6 +165,8 @@ class SO2(Manifold):
 
     def _tm(self, x, y):
         return _eye(1, torch.broadcast_shapes(x.shape[:-2], y.shape[:-2]), x)
+
+    _G_identity = True
 
     def _G_x(self, x_d, v):
         batch = torch.broadcast_shapes(x_d.shape[:-2], v.shape[:-1])

@@ -536,6 +536,31 @@ class ProductManifold(Manifold):
         blocks = [m._G_f(x_d[n], parts[n]) for n, m in self.components.items()]
         return self._block_diag(blocks, [m.ext_dim for m in self.components.values()])
 
+    def _linearize(self, x_d, v, dt, df_dx, df_du):
+        """Eq. 21-22 by row blocks: component i contributes ``G_x,i`` on its own columns plus
+        ``Δt G_f,i (∂f/∂δx)_i``; identity G's (Rⁿ, SO(2), surfaces) skip their products."""
+        n = self.dim
+        batch = torch.broadcast_shapes(self._batch_shape(x_d), v.shape[:-1], df_dx.shape[:-2],
+                                       df_du.shape[:-2])
+        parts = self._split(v, "ext_dim")
+        eye = torch.eye(n, dtype=v.dtype, device=v.device)
+        rows_x, rows_u = [], []
+        comps = zip(self.components.items(), self.slices.values(), self.ext_slices.values())
+        for (name, m), sl, esl in comps:
+            Jx, Ju = df_dx[..., esl, :], df_du[..., esl, :]
+            if m._G_identity:
+                rows_x.append(eye[sl] + dt * Jx)
+                rows_u.append(dt * Ju)
+                continue
+            Gx, Gf = m._G_x(x_d[name], parts[name]), m._G_f(x_d[name], parts[name])
+            left = Gx.new_zeros(*Gx.shape[:-1], sl.start)
+            right = Gx.new_zeros(*Gx.shape[:-1], n - sl.stop)
+            rows_x.append(torch.cat([left, Gx, right], -1) + dt * (Gf @ Jx))
+            rows_u.append(dt * (Gf @ Ju))
+        A = torch.cat([r.expand(*batch, *r.shape[-2:]) for r in rows_x], -2)
+        B = torch.cat([r.expand(*batch, *r.shape[-2:]) for r in rows_u], -2)
+        return A, B
+
     def _random(self, batch, generator, dtype, device):
         comps = self.components.items()
         return ProductState({n: m._random(batch, generator, dtype, device) for n, m in comps},

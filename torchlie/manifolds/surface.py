@@ -137,6 +137,8 @@ class Surface(Manifold):
     def _oplus(self, x, delta_e):
         return self._lift(x[..., :2] + delta_e)
 
+    _G_identity = True
+
     def _G_x(self, x_d, v):
         return _eye(2, torch.broadcast_shapes(x_d.shape[:-1], v.shape[:-1]), v)
 
