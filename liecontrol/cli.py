@@ -24,6 +24,10 @@ _COMMANDS: tuple[tuple[tuple[str, ...], str, str], ...] = (
     (("compare",), "liecontrol.compare", "MPC expert vs PPO/SAC trained within a step budget, same seeds"),
     (("reproduce", "me2"), "liecontrol.reproduce.me2",
      "seed 000 Sec. 4: ME2 horizon prediction, Table 1, Fig. 3-4"),
+    (("reproduce", "quadrotor"), "liecontrol.reproduce.quadrotor",
+     "seed 003 Sec. VII-A: error-state MPC of a quadrotor (circle, flip, 8 m/s loop) vs CasADi+IPOPT"),
+    (("reproduce", "ugv"), "liecontrol.reproduce.ugv",
+     "seed 003 Sec. VII-B: error-state MPC of a ground vehicle on a curved road"),
 )
 
 _GROUP_HELP = MappingProxyType({

@@ -226,7 +226,7 @@ class CasadiQuadrotorMPC:
         dt: step (s), ``> 0``.
         Q: ``(9,)`` diagonal running weight on ``x ⊟ x^d`` (order p, v, R), ``≥ 0``.
         Ru: ``(4,)`` diagonal weight on ``u − u^d``, ``≥ 0``.
-        P: ``(9,)`` diagonal terminal weight, ``≥ 0``.
+        P: ``(9,)`` diagonal terminal weight, ``≥ 0``, or a symmetric PSD ``(9, 9)`` matrix.
         u_lower, u_upper: ``(4,)`` input box, ``u_lower ≤ u_upper`` (``±inf`` allowed).
         g: gravity (m/s²).
         ipopt_options: IPOPT options (bare IPOPT names, e.g. ``{"tol": 1e-6}``) that override the defaults
@@ -253,8 +253,17 @@ class CasadiQuadrotorMPC:
         if not np.isfinite(g):
             raise ValueError(f"g must be finite, got {g}")
         self.horizon, self.dt, self.g = int(horizon), dt, g
-        self.Q, self.Ru, self.P = _vec("Q", Q, NE), _vec("Ru", Ru, NU), _vec("P", P, NE)
-        for name, w in (("Q", self.Q), ("Ru", self.Ru), ("P", self.P)):
+        self.Q, self.Ru = _vec("Q", Q, NE), _vec("Ru", Ru, NU)
+        Pa = np.asarray(P, dtype=np.float64)
+        if Pa.shape == (NE, NE):  # a full terminal weight (e.g. the DARE solution)
+            if not np.all(np.isfinite(Pa)) or not np.allclose(Pa, Pa.T, rtol=0, atol=1e-9 * np.abs(Pa).max()):
+                raise ValueError("P must be finite and symmetric")
+            if np.linalg.eigvalsh(0.5 * (Pa + Pa.T)).min() < -1e-9 * np.abs(Pa).max():
+                raise ValueError("P must be positive semidefinite")
+            self.P = 0.5 * (Pa + Pa.T)
+        else:
+            self.P = np.diag(_vec("P", P, NE))
+        for name, w in (("Q", self.Q), ("Ru", self.Ru), ("P", np.diag(self.P))):
             if np.any(w < 0):
                 raise ValueError(f"{name} must be >= 0, got {w}")
         lo, hi = np.asarray(u_lower, dtype=np.float64), np.asarray(u_upper, dtype=np.float64)
@@ -297,7 +306,7 @@ class CasadiQuadrotorMPC:
             cons.append(z_vars[:, k] - self._step_fn(z_prev, u_vars[:, k]))
             z_prev = z_vars[:, k]
         e = self._error_fn(z_prev, zref[:, n])
-        cost += ca.dot(pw * e, e)
+        cost += ca.dot(e, ca.mtimes(pw, e))
 
         # Decision vector: (z_1, u_0, z_2, u_1, …) interleaved per stage would be equivalent; keep blocks.
         w = ca.vertcat(ca.reshape(z_vars, -1, 1), ca.reshape(u_vars, -1, 1))
