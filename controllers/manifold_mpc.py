@@ -489,13 +489,40 @@ class ErrorStateMPC:
 
     # -- one linear-quadratic solve on an error system ---------------------------------------------
     def _solve_lq(self, es: ErrorSystem, dx0: Tensor, Qs: Tensor, q: Tensor | None, r: Tensor | None,
-                  lo: Tensor, hi: Tensor, warm: Tensor | None, *, solver: str, grad: GradMode):
+                  lo: Tensor, hi: Tensor, warm: Tensor | None, *, solver: str, grad: GradMode,
+                  riccati_first: bool = True):
         """Minimize Σ δxᵀQ_kδx + 2q_kᵀδx + δuᵀRδu + 2r_kᵀδu on the error system (δx_0 given).
 
         Returns ``(δU (*B, N, m), δX (*B, N+1, n), cost (*B,), reason (*B,), kkt (*B,), clamped)``."""
         N, m = self.N, self.m
         batch = dx0.shape[:-1]
         dtype, dev = dx0.dtype, dx0.device
+        n = dx0.shape[-1]
+        if (solver == "qp" and riccati_first and self.bounded and self.R.dim() == 2
+                and batch.numel() * (N * m) ** 2 * (N + 1) * n > _RICCATI_FIRST_FLOPS):
+            # a big condensed QP (O(N³) per element): solve all by Riccati (O(N)), which is the answer for
+            # every element whose controls respect the limits, and condense only the others
+            out = self._solve_lq(es, dx0, Qs, q, r, lo, hi, warm, solver="riccati", grad=grad)
+            with torch.no_grad():
+                viol = ((out[0] < lo) | (out[0] > hi)).flatten(-2).any(-1)
+            if not bool(viol.any()):
+                return out
+            idx = viol.reshape(-1).nonzero().squeeze(-1)
+
+            def sub(t, k):  # the violating elements of a tensor with k event dims (batch first)
+                if t is None:
+                    return None
+                t = t.expand(*batch, *t.shape[t.dim() - k:])
+                return t.reshape(-1, *t.shape[len(batch):])[idx]
+
+            es_v = ErrorSystem(A=sub(es.A, 3), B=sub(es.B, 3), c=sub(es.c, 2))
+            res = self._solve_lq(es_v, sub(dx0, 1), sub(Qs, 3), sub(q, 2), sub(r, 2), sub(lo, 2), sub(hi, 2),
+                                 sub(warm, 2), solver="qp", grad=grad, riccati_first=False)
+            merged = []
+            for full, part in zip(out, res):
+                flat = full.reshape(-1, *full.shape[len(batch):])
+                merged.append(flat.index_copy(0, idx, part.to(flat.dtype)).reshape(full.shape))
+            return tuple(merged)
         if solver == "riccati":
             from controllers import riccati  # noqa: PLC0415  (riccati imports implicit; keep import cost lazy)
 
@@ -508,7 +535,6 @@ class ErrorStateMPC:
             clamped = torch.zeros(*batch, N, m, dtype=torch.bool, device=dev)
             return sol.u, sol.x, sol.cost, reason, zeros, clamped
         Su, free_x = _condense(es, dx0)  # (*B, N+1, n, Nm), (*B, N+1, n): δX = Su δU + free_x
-        n = Su.shape[-2]
         QSu = (Qs @ Su).reshape(*batch, (N + 1) * n, N * m)  # Q̄ S_u, block rows
         SuT = Su.reshape(*batch, (N + 1) * n, N * m).transpose(-1, -2)
         Rb = self.R.expand(*batch, m, m)
@@ -532,9 +558,22 @@ class ErrorStateMPC:
             lo = lo.expand(*batch, N, m).reshape(*batch, N * m)
             hi = hi.expand(*batch, N, m).reshape(*batch, N * m)
             with torch.no_grad():
-                inside = bool(((dU >= lo) & (dU <= hi)).all())
-            if not inside:
+                viol = ((dU < lo) | (dU > hi)).any(-1)  # (*B,): elements whose Eq. 31 breaks a limit
+            if bool(viol.all()):
                 dU, reason, kkt, clamped = self._box(H, g, lo, hi, dU, warm, grad)
+            elif bool(viol.any()):  # the box QP only for those; the others keep the closed form
+                idx = viol.reshape(-1).nonzero().squeeze(-1)
+                nb = idx.shape[0]
+
+                def sub(t):
+                    return t.expand(*batch, *t.shape[len(batch):]).reshape(-1, *t.shape[len(batch):])[idx]
+                w = None if warm is None else sub(warm.reshape(*warm.shape[:-2], N * m))
+                dUs, rs, ks, cs = self._box(sub(H), sub(g), sub(lo), sub(hi), sub(dU), w, grad)
+                flat = dU.reshape(-1, N * m).index_copy(0, idx, dUs)
+                dU = flat.reshape(*batch, N * m)
+                reason = reason.reshape(-1).index_copy(0, idx, rs.to(reason.dtype).reshape(nb)).reshape(batch)
+                kkt = kkt.reshape(-1).index_copy(0, idx, ks.to(kkt.dtype).reshape(nb)).reshape(batch)
+                clamped = clamped.reshape(-1, N * m).index_copy(0, idx, cs).reshape(*batch, N * m)
         dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
         dUr = dU.reshape(*batch, N, m)
         cost = ((dX.unsqueeze(-2) @ Qs @ dX.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1) \
@@ -704,6 +743,11 @@ class ErrorStateMPC:
         scale = 2 * torch.einsum("...kia,...ki->...a", Su, q).norm(dim=-1) + 2 * r.flatten(-2).norm(dim=-1) \
             + torch.finfo(U.dtype).tiny
         return dU, gnorm, scale.expand(batch)
+
+
+#: above this many multiply-adds for the condensed Hessians of a batch (``B (N m)² (N+1) n``) a bounded
+#: solve goes through the Riccati form first and condenses only the elements that break a limit
+_RICCATI_FIRST_FLOPS = 3e7
 
 
 def _condense(es: ErrorSystem, dx0: Tensor) -> tuple[Tensor, Tensor]:

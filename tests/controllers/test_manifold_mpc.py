@@ -202,6 +202,41 @@ def test_batched_equals_per_sample_and_nan_element_does_not_poison():
     assert bool(sol.status.converged[keep].all())
 
 
+def test_mixed_batch_box_qp_only_where_needed_equals_per_sample_with_gradients():
+    """Elements whose closed form respects the limits keep it; the others get the box QP: values and
+    gradients equal those of one-element solves."""
+    q = Quadrotor(rate_max=0.6, thrust_min=-1e3, thrust_max=1e3)
+    M = q.manifold
+    _, ur = _ref(q, 4, seed=21)
+    ur = ur.clone()
+    ur[..., 1:] = ur[..., 1:].clamp(-0.3, 0.3)
+    xr = manifold_rollout(q, _state(q, 4, seed=23), ur)  # a feasible reference
+    # elements 0 and 2 start on their reference (a small correction), 1 and 3 far from it
+    far = _state(q, 4, seed=22)
+    x0 = _where_near(M, time_index(M, xr, 0), far, torch.tensor([True, False, True, False]))
+    qw = QW.clone().requires_grad_(True)
+    mpc = ErrorStateMPC(q, N, qw, RW)
+    full = mpc.solve(x0, xr, ur)
+    any_clamped = full.clamped.flatten(1).any(1)
+    assert any_clamped.tolist() == [False, True, False, True]
+    gfull = torch.autograd.grad(full.u.sum(), qw)[0]
+    gsum = torch.zeros_like(gfull)
+    for b in range(4):
+        one = mpc.solve(x0[b:b + 1], xr[b:b + 1], ur[b:b + 1])
+        torch.testing.assert_close(full.U[b:b + 1], one.U, rtol=0, atol=1e-10)
+        assert one.clamped.any().item() == any_clamped[b].item()
+        gsum += torch.autograd.grad(one.u.sum(), qw)[0]
+    torch.testing.assert_close(gfull, gsum, rtol=1e-9, atol=1e-10)
+
+
+def _where_near(M, ref, far, near_mask):
+    """``ref`` nudged slightly where ``near_mask``, ``far`` elsewhere."""
+    nudged = M.boxplus(ref, 1e-3 * torch.ones(ref.p.shape[0], M.dim, dtype=D))
+    return nudged.replace(p=torch.where(near_mask[:, None], nudged.p, far.p),
+                          v=torch.where(near_mask[:, None], nudged.v, far.v),
+                          R=torch.where(near_mask[:, None, None], nudged.R, far.R))
+
+
 def test_bad_inputs_are_named():
     q = Quadrotor()
     xr, ur = _ref(q, 1)
