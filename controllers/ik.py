@@ -33,7 +33,8 @@ from torch import Tensor
 from controllers.problem import Reason, SolverStatus
 from torchlie import so3
 
-__all__ = ["IKResult", "dls_joint_velocity", "joint_limit_gradient", "pose_error", "solve_ik"]
+__all__ = ["IKResult", "dls_joint_velocity", "joint_limit_gradient", "pose_error", "resolved_rate_step",
+           "solve_ik"]
 
 
 # --------------------------------------------------------------------------------------------------
@@ -80,6 +81,30 @@ def dls_joint_velocity(J: Tensor, twist: Tensor, damping: Tensor | float = 1e-2,
     Jp = torch.linalg.pinv(J)
     z_null = z - (Jp @ (J @ z.unsqueeze(-1))).squeeze(-1)
     return qd + z_null
+
+
+def resolved_rate_step(robot, q: Tensor, twist: Tensor, dt: float, *, frame: str = "body",
+                       damping: Tensor | float = 1e-2, nullspace_gain: Tensor | float = 1.0,
+                       dq_max: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """One step of a velocity-controlled arm asked for an end-effector ``twist (*B, 6)`` in ``frame``.
+
+    ``q̇`` from :func:`dls_joint_velocity` (with joint-limit avoidance in the null space), scaled down
+    uniformly (direction kept) where a joint would exceed ``dq_max`` (default ``robot.velocity_limits``
+    when the robot has them), held for ``dt`` and clipped to the position limits:
+    ``q⁺ = clip(q + Δt q̇, q_min, q_max)``.  Returns ``(q⁺, q̇)``.  The arm's real motion is whatever the
+    forward kinematics of ``q⁺`` says: the DLS damping, the saturation and the Jacobian changing within the
+    step all make it differ from ``X exp(Δt twist)`` — the model error a Cartesian controller lives with.
+    """
+    q_min, q_max = robot.joint_limits(q.dtype, q.device)
+    J = robot.jacobian(q, frame)
+    qd = dls_joint_velocity(J, twist, damping, q, (q_min, q_max), nullspace_gain)
+    if dq_max is None and hasattr(robot, "velocity_limits"):
+        dq_max = robot.velocity_limits(q.dtype, q.device)
+    if dq_max is not None:
+        scale = (qd.abs() / dq_max).amax(-1, keepdim=True).clamp(min=1.0)
+        qd = qd / scale
+    q_next = torch.minimum(torch.maximum(q + dt * qd, q_min), q_max)
+    return q_next, qd
 
 
 # --------------------------------------------------------------------------------------------------
