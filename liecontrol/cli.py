@@ -28,6 +28,8 @@ _COMMANDS: tuple[tuple[tuple[str, ...], str, str], ...] = (
      "seed 003 Sec. VII-A: error-state MPC of a quadrotor (circle, flip, 8 m/s loop) vs CasADi+IPOPT"),
     (("reproduce", "ugv"), "liecontrol.reproduce.ugv",
      "seed 003 Sec. VII-B: error-state MPC of a ground vehicle on a curved road"),
+    (("reproduce", "pose-mpc"), "liecontrol.reproduce.pose_mpc",
+     "seed 000 Eq. 16: ME2 linear pose MPC (world/local frame) vs SE(3) error-state MPC on a Panda"),
 )
 
 _GROUP_HELP = MappingProxyType({

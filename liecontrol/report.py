@@ -7,8 +7,10 @@ in the same run, with each side timed as the median of several runs after warm-u
 
 from __future__ import annotations
 
+import argparse
 import functools
 import json
+import math
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -16,7 +18,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["time_ms", "print_table", "write_json", "sync", "restores_threads"]
+__all__ = ["time_ms", "print_table", "write_json", "sync", "restores_threads", "positive_int",
+           "positive_float"]
 
 
 def sync(device: torch.device | str | None = None) -> None:
@@ -92,3 +95,19 @@ def restores_threads(fn):
             torch.set_num_threads(n)
 
     return wrapper
+
+
+def positive_int(s: str) -> int:
+    """argparse type: a positive integer."""
+    v = int(s)
+    if v < 1:
+        raise argparse.ArgumentTypeError(f"expected a positive integer, got {s}")
+    return v
+
+
+def positive_float(s: str) -> float:
+    """argparse type: a positive finite number."""
+    v = float(s)
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {s}")
+    return v

@@ -36,7 +36,7 @@ import torch
 from controllers.manifold_mpc import ErrorStateMPC, riccati_terminal_weight, track
 from controllers.systems import quadrotor_flatness as qf
 from controllers.systems.quadrotor import Quadrotor, QuadrotorSimulator
-from liecontrol.report import print_table, restores_threads
+from liecontrol.report import positive_int, print_table, restores_threads
 from torchlie import so3
 
 __all__ = ["add_arguments", "run", "run_experiment", "SCENARIOS"]
@@ -351,22 +351,16 @@ def _public(result: dict) -> dict:
     return out
 
 
-def _positive_int(s: str) -> int:
-    v = int(s)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {s}")
-    return v
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/quadrotor", help="folder for the figures and report.md")
     parser.add_argument("--json", metavar="PATH", help="write the results as JSON to PATH")
-    parser.add_argument("--horizons", type=_positive_int, nargs="+", default=[8, 16, 32],
+    parser.add_argument("--horizons", type=positive_int, nargs="+", default=[8, 16, 32],
                         help="MPC horizons; the first is the headline and the anchor's (default 8 16 32)")
     parser.add_argument("--scenarios", nargs="+", choices=SCENARIOS, default=list(SCENARIOS))
     parser.add_argument("--no-anchor", action="store_true", help="skip the CasADi + IPOPT anchor")
-    parser.add_argument("--batch", type=_positive_int, default=1024, help="quadrotors in the batched step")
-    parser.add_argument("--threads", type=_positive_int, default=1, help="torch intra-op threads (default 1)")
+    parser.add_argument("--batch", type=positive_int, default=1024, help="quadrotors in the batched step")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--quick", action="store_true", help="short references (a smoke run)")
     parser.add_argument("--no-plots", action="store_true", help="skip the figures")
 
