@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 
 __all__ = ["time_ms", "print_table", "write_json", "sync", "restores_threads", "positive_int",
-           "positive_float"]
+           "positive_float", "public", "write_result", "markdown_cell"]
 
 
 def sync(device: torch.device | str | None = None) -> None:
@@ -111,3 +111,23 @@ def positive_float(s: str) -> float:
     if not (v > 0 and math.isfinite(v)):
         raise argparse.ArgumentTypeError(f"expected a positive number, got {s}")
     return v
+
+
+def public(result: dict) -> dict:
+    """``result`` without its private entries (keys starting with ``_``: raw curves for the figures)."""
+    return {k: v for k, v in result.items() if not k.startswith("_")}
+
+
+def write_result(path: str | Path, data: dict) -> Path:
+    """Write one JSON result ``data`` to ``path`` (parent folders are created); returns the path."""
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    p.write_text(json.dumps(data, indent=1) + "\n")
+    return p
+
+
+def markdown_cell(v) -> str:
+    """A table cell of a ``report.md``: floats to 3 significant digits, ``None`` empty."""
+    if isinstance(v, float):
+        return f"{v:.3g}" if math.isfinite(v) else str(v)
+    return "" if v is None else str(v)

@@ -9,6 +9,7 @@ import pytest
 pytest.importorskip("pytorch_kinematics")
 
 from liecontrol import cli  # noqa: E402
+from liecontrol.report import public  # noqa: E402
 from liecontrol.reproduce import pose_mpc  # noqa: E402
 
 
@@ -43,7 +44,7 @@ def test_report_figures_and_json(quick, tmp_path):
     assert all(p.stat().st_size > 10_000 for p in figs)
     text = pose_mpc.write_report(quick, tmp_path, figs).read_text()
     assert "cut locus" in text and "batched IK" in text and "| path |" in text
-    data = json.loads(json.dumps(pose_mpc._public(quick)))
+    data = json.loads(json.dumps(public(quick)))
     assert set(data["timing"]) == {"world", "local", "se3"} and "_curves" not in data
 
 

@@ -19,7 +19,6 @@ the batched time divided by (horizons × steps).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import statistics
 import time
@@ -28,7 +27,7 @@ from pathlib import Path
 
 import torch
 
-from liecontrol.report import positive_float, positive_int, print_table
+from liecontrol.report import positive_float, positive_int, print_table, public, write_result
 from liecontrol.reproduce._trajectory import (
     PANDA_LIMITS,
     alpha_limits,
@@ -427,10 +426,6 @@ def save_figures(result: dict, out: Path) -> list[Path]:
     return paths
 
 
-def _public(result: dict) -> dict:
-    return {k: v for k, v in result.items() if not k.startswith("_")}
-
-
 # ---------------------------------------------------------------------------------------------------------
 # CLI
 # ---------------------------------------------------------------------------------------------------------
@@ -477,8 +472,5 @@ def run(args: argparse.Namespace) -> int:
         for p in save_figures(result, Path(args.out)):
             print(f"wrote {p}")
     if args.json:
-        p = Path(args.json)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(_public(result), indent=1) + "\n")
-        print(f"wrote {p}")
+        print(f"wrote {write_result(args.json, public(result))}")
     return 0

@@ -31,7 +31,6 @@ Outputs under ``--out`` (default ``out/pose_mpc``): ``errors.png``, ``cut_locus.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 from pathlib import Path
@@ -41,7 +40,16 @@ import torch
 from controllers.ik import resolved_rate_step, solve_ik
 from controllers.pose_mpc import FRAMES, PoseMPC, twist_box
 from controllers.systems.panda import Panda
-from liecontrol.report import positive_float, positive_int, print_table, restores_threads, time_ms
+from liecontrol.report import (
+    markdown_cell,
+    positive_float,
+    positive_int,
+    print_table,
+    public,
+    restores_threads,
+    time_ms,
+    write_result,
+)
 from liecontrol.reproduce._trajectory import (
     PANDA_LIMITS,
     alpha_limits,
@@ -263,7 +271,7 @@ def _findings(result: dict) -> list[str]:
 
 def write_report(result: dict, out: Path, figures: list[Path]) -> Path:
     head = "| " + " | ".join(_COLS) + " |\n|" + "---|" * len(_COLS) + "\n"
-    body = "".join("| " + " | ".join(_cell(r.get(c)) for c in _COLS) + " |\n" for r in result["rows"])
+    body = "".join("| " + " | ".join(markdown_cell(r.get(c)) for c in _COLS) + " |\n" for r in result["rows"])
     tim = result["timing"]
     trow = "".join(f"| {LABELS[f]} | {tim[f]['single_ms']:.3g} | {tim[f]['batch_ms']:.3g} "
                    f"({tim[f]['batch_bound_active']} with a bound active) |\n" for f in FRAMES)
@@ -312,12 +320,6 @@ def write_report(result: dict, out: Path, figures: list[Path]) -> Path:
     path = out / "report.md"
     path.write_text(text)
     return path
-
-
-def _cell(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.3g}" if math.isfinite(v) else str(v)
-    return "" if v is None else str(v)
 
 
 def save_figures(result: dict, out: Path) -> list[Path]:
@@ -390,10 +392,6 @@ def save_figures(result: dict, out: Path) -> list[Path]:
     return paths
 
 
-def _public(result: dict) -> dict:
-    return {k: v for k, v in result.items() if not k.startswith("_")}
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", default="out/pose_mpc", help="folder for the figures and report.md")
     parser.add_argument("--json", metavar="PATH", help="write the results as JSON to PATH")
@@ -424,8 +422,5 @@ def run(args: argparse.Namespace) -> int:
     for p in [*figures, report]:
         print(f"wrote {p}")
     if args.json:
-        p = Path(args.json)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(_public(result), indent=1) + "\n")
-        print(f"wrote {p}")
+        print(f"wrote {write_result(args.json, public(result))}")
     return 0

@@ -26,8 +26,6 @@ vs time), ``attitude.png`` (attitude error and the flip's pitch), ``report.md``;
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import time
 from pathlib import Path
 
@@ -36,7 +34,7 @@ import torch
 from controllers.manifold_mpc import ErrorStateMPC, riccati_terminal_weight, track
 from controllers.systems import quadrotor_flatness as qf
 from controllers.systems.quadrotor import Quadrotor, QuadrotorSimulator
-from liecontrol.report import positive_int, print_table, restores_threads
+from liecontrol.report import markdown_cell, positive_int, print_table, public, restores_threads, write_result
 from torchlie import so3
 
 __all__ = ["add_arguments", "run", "run_experiment", "SCENARIOS"]
@@ -220,7 +218,7 @@ def _verdicts(result: dict) -> list[str]:
 def write_report(result: dict, out: Path, figures: list[Path]) -> Path:
     rows = result["rows"]
     head = "| " + " | ".join(_COLS) + " |\n|" + "---|" * len(_COLS) + "\n"
-    body = "".join("| " + " | ".join(_cell(r.get(c)) for c in _COLS) + " |\n" for r in rows)
+    body = "".join("| " + " | ".join(markdown_cell(r.get(c)) for c in _COLS) + " |\n" for r in rows)
     w = result["weights"]
     flip = next((r for r in rows if r["scenario"] == "flip" and r["method"] == "error-state MPC"), None)
     text = f"""# Quadrotor error-state MPC (seed 003 §VII-A)
@@ -274,12 +272,6 @@ def _flip_line(flip) -> str:
     return (f"- The flip was tracked through every rotation with max position error {e:.3g} m and max "
             f"attitude error {a:.3g} rad: the error state lives in the tangent space, so no attitude is "
             "singular.")
-
-
-def _cell(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.3g}" if math.isfinite(v) else str(v)
-    return "" if v is None else str(v)
 
 
 def save_figures(result: dict, out: Path) -> list[Path]:
@@ -345,7 +337,7 @@ def save_figures(result: dict, out: Path) -> list[Path]:
 
 
 def _public(result: dict) -> dict:
-    out = {k: v for k, v in result.items() if not k.startswith("_")}
+    out = public(result)
     for row in out["rows"]:
         row.pop("peaks", None)
     return out
@@ -379,8 +371,5 @@ def run(args: argparse.Namespace) -> int:
     for p in [*figures, report]:
         print(f"wrote {p}")
     if args.json:
-        p = Path(args.json)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(_public(result), indent=1) + "\n")
-        print(f"wrote {p}")
+        print(f"wrote {write_result(args.json, _public(result))}")
     return 0

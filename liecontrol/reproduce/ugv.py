@@ -21,7 +21,6 @@ period).  Outputs under ``--out`` (default ``out/ugv``): ``path.png``, ``errors.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 
@@ -30,7 +29,7 @@ import torch
 from controllers.manifold_mpc import ErrorStateMPC, track
 from controllers.problem import Reason
 from controllers.systems.ugv import ugv_scenario
-from liecontrol.report import print_table, restores_threads, time_ms
+from liecontrol.report import print_table, public, restores_threads, time_ms, write_result
 
 __all__ = ["add_arguments", "run", "run_experiment", "write_outputs", "TARGET_POS_M", "TARGET_STEP_MS"]
 
@@ -269,14 +268,8 @@ def run_experiment(*, horizon: int = PAPER_HORIZON, steps: int | None = None, se
     if out is not None:
         result["files"] = [str(p) for p in write_outputs(result, Path(out))]
     if json_path is not None:
-        p = Path(json_path)
-        p.parent.mkdir(parents=True, exist_ok=True)
-        p.write_text(json.dumps(_public(result), indent=1) + "\n")
+        write_result(json_path, public(result))
     return result
-
-
-def _public(result: dict) -> dict:
-    return {k: v for k, v in result.items() if not k.startswith("_")}
 
 
 # ---------------------------------------------------------------------------------------------------------
