@@ -9,10 +9,10 @@ imported only by :mod:`learning.sb3`, :mod:`learning.mpc_policy` and (inside its
 from learning.bc import Demos, bc_study, collect_demos, train_mlp_policy, train_mpc_cost
 from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
 from learning.evaluate import EvalResult, evaluate
-from learning.policies import MPCExpert, as_policy
+from learning.policies import MPCExpert, as_policy, task_expert
 from learning.registration import env_id, register_envs
 from learning.vector import TaskVectorEnv
 
 __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "CartPoleSwingUp",
-           "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert", "Demos",
+           "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert", "task_expert", "Demos",
            "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study"]

@@ -17,10 +17,12 @@ env's action space ``[-1, 1]^m``; the env clips outside it) in one call, with no
 * an object with ``predict`` (a stable-baselines3 model): :class:`SB3Adapter`;
 * a ``torch.nn.Module``: :class:`ModuleAdapter` (``module(obs)`` under ``no_grad``);
 * any other callable: :class:`CallableAdapter` (``fn(obs)``);
-* ``"mpc"``: the task's :class:`MPCExpert`.
+* ``"mpc"``: the task's expert (:func:`task_expert`).
 
 The MPC expert (:class:`MPCExpert`) solves the task with iLQR MPC on the task's own model and cost
-(``task.system``, ``task.mpc_cost``) under the limits ``±u_max``, warm-started from step to step.
+(``task.system``, ``task.mpc_cost``) under the limits ``±u_max``, warm-started from step to step; a task
+whose MPC is something else (the quadrotor's error-state MPC on R³×R³×SO(3)) gives its own through
+:meth:`learning.envs.task.Task.expert`.
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from torch import Tensor, nn
 from learning.envs.single import make_task
 from learning.envs.task import Task
 
-__all__ = ["Policy", "MPCAdapter", "angle_dims", "DEFAULT_HORIZON", "MPCExpert", "SB3Adapter",
+__all__ = ["Policy", "MPCAdapter", "angle_dims", "DEFAULT_HORIZON", "MPCExpert", "task_expert", "SB3Adapter",
            "ModuleAdapter", "CallableAdapter", "as_policy"]
 
 
@@ -267,6 +269,14 @@ class _MethodMPC(nn.Module):
         return u, nxt
 
 
+def task_expert(task: Task | str, horizon: int | None = None, **kwargs) -> Policy:
+    """The MPC that solves ``task``: its own (:meth:`~learning.envs.task.Task.expert`) where it has one, else
+    the iLQR :class:`MPCExpert`.  The result has a ``horizon`` attribute."""
+    t = make_task(task)
+    own = t.expert(horizon, **kwargs)
+    return own if own is not None else MPCExpert(t, horizon, **kwargs)
+
+
 class SB3Adapter(Policy):
     """A stable-baselines3 model (anything with ``predict(obs: ndarray, deterministic=True)`` returning
     ``(actions, state)`` or the actions alone); the observation goes to numpy and back."""
@@ -325,7 +335,7 @@ def as_policy(obj: Any, task: Task | str | None = None) -> Policy:
             raise ValueError(f"as_policy: unknown policy name {obj!r} (known: 'mpc')")
         if t is None:
             raise ValueError("as_policy: the 'mpc' expert needs the task")
-        return MPCExpert(t)
+        return task_expert(t)
     if isinstance(obj, MPCPolicy):
         if t is None:
             raise ValueError("as_policy: an MPCPolicy needs the task (to map observations to states)")

@@ -152,7 +152,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
     from learning import baselines as bl
     from learning.envs.single import make_task
     from learning.evaluate import evaluate, jsonable
-    from learning.policies import MPCExpert
+    from learning.policies import task_expert
 
     t_start = time.perf_counter()
     if threads and threads > 0:
@@ -177,7 +177,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
 
     mpc_res = None
     if mpc:
-        expert = MPCExpert(task, horizon=mpc_horizon)
+        expert = task_expert(task, horizon=mpc_horizon)
         say(f"{task.name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
         mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=False)
         record["mpc"] = _metrics(mpc_res.summary()) | {"horizon": expert.horizon, "eval_seeds": ev_seeds}

@@ -110,6 +110,13 @@ class Task:
         """``(size, size, 3)`` uint8 image of one state ``x (n,)``."""
         raise NotImplementedError
 
+    def expert(self, horizon: int | None = None, **kwargs):
+        """The task's own MPC expert (a :class:`learning.policies.Policy`), or ``None`` (the default): the
+        iLQR :class:`learning.policies.MPCExpert` on ``system`` and ``mpc_cost`` solves it.  Tasks whose
+        MPC is not an iLQR on a vector state (the quadrotor's error-state MPC on its manifold) override it;
+        :func:`learning.policies.task_expert` picks."""
+        return None
+
     # --- shared -------------------------------------------------------------------------------------
     @property
     def n(self) -> int:
