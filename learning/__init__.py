@@ -14,5 +14,5 @@ from learning.registration import env_id, register_envs
 from learning.vector import TaskVectorEnv
 
 __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "CartPoleSwingUp",
-           "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert", "task_expert", "Demos",
-           "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study"]
+           "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert", "task_expert",
+           "Demos", "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study"]

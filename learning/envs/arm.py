@@ -1,5 +1,5 @@
-"""Reaching with a planar n-link arm on :class:`controllers.systems.PlanarArm`, optionally around circular
-obstacles.
+"""Reaching with a planar n-link arm on :class:`controllers.systems.PlanarArm`, optionally through via-points
+and around circular obstacles.
 
 **Where the target lives.**  A :class:`~learning.envs.task.Task` sees only the system state ``x`` (its
 ``observe``/``reward``/``mpc_cost`` are functions of ``x``), so the task's system is the arm with the
@@ -26,6 +26,20 @@ recovers it from the observation, and the MPC cost reads it from the state — s
 * Initial state: joint angles uniform in ``[-π, π)``, at rest; the target uniform (in area) in the annulus
   ``target_radius · reach`` around the base, uniform in angle.  Obstacles are fixed by the constructor;
   a drawn target or initial configuration may lie inside one (choose obstacles off the sampled region).
+
+**Via-points** (``via_points = V > 0``): the end effector must pass ``V`` points, in order, before the
+target.  They are drawn like the target and carried in the state after it, followed by a counter ``j``
+of the via-points passed (:class:`ArmWaypoints`).  Passing a via-point is a task event, not dynamics: the
+system carries ``j`` unchanged like the other constants (so the MPC plans towards the next waypoint
+``w_j``, a smooth problem), and :meth:`ArmReach.step` advances ``j`` after the arm's step when the new
+end-effector position lies within ``via_radius · reach`` of ``w_j`` (:meth:`ArmWaypoints.advance`).  State
+``[q, q̇, target, via_1 … via_V, j]``; the observation appends ``[via_1 … via_V, w_j, ee − w_j, j]`` to
+the one above (``w_j`` the next waypoint: via-point ``j + 1``, or the target once all are passed).  The
+tracking term of the reward and of the MPC cost is the squared *distance to go*
+``d = |ee − w_j| + Σ`` (lengths of the remaining legs ``w_j → … → target``), which never grows when a
+via-point is passed (the triangle inequality), so passing one never costs reward; :meth:`ArmReach.error`
+is ``d`` and success requires every via-point passed.  The MPC cost tracks ``ee − w_j`` (the constant
+remaining legs change nothing in a plan with ``j`` held).
 """
 
 from __future__ import annotations
@@ -42,7 +56,7 @@ from controllers.systems import PlanarArm
 from learning.envs._canvas import Canvas
 from learning.envs.task import Task, hi, lo
 
-__all__ = ["ArmReach", "WithConstants"]
+__all__ = ["ArmReach", "WithConstants", "ArmWaypoints"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,6 +105,38 @@ class WithConstants:
         return A, torch.cat([B, B.new_zeros(*bs, p, B.shape[-1])], -2)
 
 
+@dataclass(frozen=True, eq=False)
+class ArmWaypoints(WithConstants):
+    """:class:`WithConstants` over a planar arm whose constants are ``[target, via_1 … via_V]`` followed by
+    a counter ``j`` of the via-points passed (``extra = 2V + 3``), which its step carries unchanged;
+    :meth:`advance` is the task's event ``j⁺ = j + 1`` where ``j < V`` and the end effector lies within
+    ``radius`` of via-point ``j + 1``."""
+
+    vias: int = 0
+    radius: float = 0.0
+
+    def waypoints(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """``(points (*B, V+1, 2) = [via_1 … via_V, target], j (*B,) int64)``."""
+        nb, V = self.base.n, self.vias
+        tgt = x[..., nb:nb + 2]
+        vias = x[..., nb + 2:nb + 2 + 2 * V].unflatten(-1, (V, 2))
+        j = x[..., nb + 2 + 2 * V].round().long().clamp(0, V)
+        return torch.cat([vias, tgt[..., None, :]], -2), j
+
+    def current(self, x: Tensor) -> Tensor:
+        """The next waypoint ``w_j`` ``(*B, 2)``."""
+        pts, j = self.waypoints(x)
+        return torch.gather(pts, -2, j[..., None, None].expand(*j.shape, 1, 2)).squeeze(-2)
+
+    def advance(self, x: Tensor) -> Tensor:
+        """``x`` with ``j`` advanced where the end effector is within ``radius`` of the next via-point."""
+        ee = self.base.end_effector(x[..., :self.base.links])
+        e = ee - self.current(x)
+        j = x[..., -1]
+        passed = (j < self.vias) & ((e * e).sum(-1) < self.radius * self.radius)
+        return torch.cat([x[..., :-1], (j + passed.to(j.dtype))[..., None]], -1)
+
+
 def _default_arm() -> PlanarArm:
     return PlanarArm(links=2, lengths=0.5, masses=1.0, damping=0.1, gravity=0.0, dt=0.05)
 
@@ -110,6 +156,8 @@ class ArmReach(Task):
         obstacle_margin: the MPC cost keeps the links this far outside the obstacles (fraction of the reach).
         terminate_on_collision: end the episode when a link is inside an obstacle.
         success_speed: joint speed below which a reached target counts as a success.
+        via_points: number ``V`` of via-points to pass, in order, before the target (module docstring).
+        via_radius: a via-point is passed within this distance (fraction of the reach).
         termination_penalty: subtracted from the reward of a step that terminates the episode (default
             ``None``: :meth:`termination_cost`).
     """
@@ -127,6 +175,8 @@ class ArmReach(Task):
     terminate_on_collision: bool = False
     success_speed: float = 0.5
     termination_penalty: float | None = None
+    via_points: int = 0
+    via_radius: float = 0.05
     max_episode_steps: int = 100
 
     def __post_init__(self) -> None:
@@ -140,6 +190,15 @@ class ArmReach(Task):
         if any(len(o) != 3 or o[2] <= 0 for o in obs):
             raise ValueError("ArmReach: 'obstacles' must be circles (cx, cy, r) with r > 0")
         object.__setattr__(self, "obstacles", obs)
+        V = self.via_points
+        if isinstance(V, bool) or not isinstance(V, int) or V < 0:
+            raise ValueError(f"ArmReach: 'via_points' must be a non-negative int, got {V!r}")
+        if not 0.0 < self.via_radius < 1.0:
+            raise ValueError(f"ArmReach: 'via_radius' must be in (0, 1) (a fraction of the reach), "
+                             f"got {self.via_radius!r}")
+        system = (ArmWaypoints(self.model, 2 * V + 3, V, self.via_radius * self.model.reach) if V
+                  else WithConstants(self.model, 2))
+        object.__setattr__(self, "_system", system)
 
     # --- sizes ------------------------------------------------------------------------------------------
     @property
@@ -148,15 +207,15 @@ class ArmReach(Task):
 
     @property
     def obs_dim(self) -> int:  # type: ignore[override]
-        return 3 * self.links + 4
+        return 3 * self.links + 4 + (2 * self.via_points + 5 if self.via_points else 0)
 
     @property
     def n_noise(self) -> int:  # type: ignore[override]
-        return self.links + 2
+        return self.links + 2 + 2 * self.via_points
 
     @property
     def system(self) -> WithConstants:
-        return WithConstants(self.model, 2)
+        return self._system
 
     @property
     def reach(self) -> float:
@@ -191,14 +250,18 @@ class ArmReach(Task):
         # ≤ r_max · reach and |ee| ≤ reach.
         k, R = self.links, self.reach
         qd = self.speed_limit + hi(self.model.dt) * self._acc_bound()
-        return np.array([1.0] * (2 * k) + [qd] * k + [R, R, 2 * R, 2 * R])
+        high = [1.0] * (2 * k) + [qd] * k + [R, R, 2 * R, 2 * R]
+        if self.via_points:  # via-points and w_j lie in the target annulus; j ≤ V
+            high += [R] * (2 * self.via_points) + [R, R, 2 * R, 2 * R, float(self.via_points)]
+        return np.array(high)
 
     def max_step_cost(self) -> float:
         """An upper bound of the per-step cost ``-r`` (``|ee - target| ≤ 2 reach``, ``|a_j| ≤ 1``, a
         penetration depth at most the obstacle's radius)."""
         k, R = self.links, self.reach
         pen = self.obstacle_weight * k * sum(o[2] ** 2 for o in self.obstacles)
-        return (2 * R) ** 2 + self.control_cost * k + pen
+        # the distance to go: at most 2R to the next waypoint plus 2R per remaining leg
+        return (2 * R * (self.via_points + 1)) ** 2 + self.control_cost * k + pen
 
     def termination_cost(self) -> float:
         """The reward penalty of a terminating step: ``termination_penalty``, or by default
@@ -212,10 +275,17 @@ class ArmReach(Task):
         k = self.links
         q = (2 * noise[..., :k] - 1) * math.pi
         r0, r1 = (f * self.reach for f in self.target_radius)
-        rho = torch.sqrt(r0 * r0 + (r1 * r1 - r0 * r0) * noise[..., k])
-        ang = (2 * noise[..., k + 1] - 1) * math.pi
-        tgt = torch.stack([rho * torch.cos(ang), rho * torch.sin(ang)], -1)
-        return torch.cat([q, torch.zeros_like(q), tgt], -1)
+
+        def annulus(i: int) -> Tensor:  # a point from the uniforms k+i, k+i+1
+            rho = torch.sqrt(r0 * r0 + (r1 * r1 - r0 * r0) * noise[..., k + i])
+            ang = (2 * noise[..., k + i + 1] - 1) * math.pi
+            return torch.stack([rho * torch.cos(ang), rho * torch.sin(ang)], -1)
+
+        parts = [q, torch.zeros_like(q), annulus(0)]
+        if self.via_points:
+            vias = [annulus(2 + 2 * i) for i in range(self.via_points)]
+            parts += vias + [noise.new_zeros(*q.shape[:-1], 1)]
+        return torch.cat(parts, -1)
 
     def _split(self, x: Tensor):
         k = self.links
@@ -224,15 +294,40 @@ class ArmReach(Task):
     def end_effector(self, x: Tensor) -> Tensor:
         return self.model.end_effector(x[..., :self.links])
 
+    def step(self, x: Tensor, u: Tensor) -> Tensor:
+        """The system's step, then (with via-points) the via-point event (module docstring)."""
+        y = self.system.step(x, u, 0)
+        return self.system.advance(y) if self.via_points else y
+
     def observe(self, x: Tensor) -> Tensor:
         q, v, tgt = self._split(x)
         ee = self.model.end_effector(q)
-        return torch.cat([torch.cos(q), torch.sin(q), v, tgt, ee - tgt], -1)
+        parts = [torch.cos(q), torch.sin(q), v, tgt, ee - tgt]
+        if self.via_points:
+            w = self.system.current(x)
+            parts += [x[..., 2 * self.links + 2:-1], w, ee - w, x[..., -1:]]
+        return torch.cat(parts, -1)
 
     def state_from_obs(self, obs: Tensor) -> Tensor:
-        k = self.links
+        k, V = self.links, self.via_points
         q = torch.atan2(obs[..., k:2 * k], obs[..., :k])
-        return torch.cat([q, obs[..., 2 * k:3 * k + 2]], -1)
+        parts = [q, obs[..., 2 * k:3 * k + 2]]
+        if V:
+            parts += [obs[..., 3 * k + 4:3 * k + 4 + 2 * V], obs[..., -1:]]
+        return torch.cat(parts, -1)
+
+    def distance_to_go(self, x: Tensor) -> Tensor:
+        """``|ee − w_j| + Σ`` remaining leg lengths ``(*B,)`` (module docstring); with ``via_points = 0`` the
+        distance to the target."""
+        q, _, tgt = self._split(x)
+        ee = self.model.end_effector(q)
+        if not self.via_points:
+            return torch.linalg.vector_norm(ee - tgt, dim=-1)
+        pts, j = self.system.waypoints(x)
+        e = ee - self.system.current(x)
+        legs = torch.linalg.vector_norm(pts[..., 1:, :] - pts[..., :-1, :], dim=-1)  # (*B, V)
+        remaining = (legs * (torch.arange(self.via_points, device=x.device) >= j[..., None])).sum(-1)
+        return torch.linalg.vector_norm(e, dim=-1) + remaining
 
     # --- obstacles --------------------------------------------------------------------------------------
     def penetration(self, x: Tensor, margin: float = 0.0) -> Tensor:
@@ -256,9 +351,13 @@ class ArmReach(Task):
     # --- reward and flags -------------------------------------------------------------------------------
     def _step_cost(self, x_next: Tensor, u: Tensor) -> Tensor:
         q, _, tgt = self._split(x_next)
-        e = self.model.end_effector(q) - tgt
         a = u / self.u_scale(u.dtype, u.device)
-        cost = (e * e).sum(-1) + self.control_cost * (a * a).sum(-1)
+        if self.via_points:
+            track = self.distance_to_go(x_next).square()
+        else:
+            e = self.model.end_effector(q) - tgt
+            track = (e * e).sum(-1)
+        cost = track + self.control_cost * (a * a).sum(-1)
         if self.obstacles:
             pen = self.penetration(x_next)
             cost = cost + self.obstacle_weight * (pen * pen).sum((-1, -2))
@@ -277,27 +376,36 @@ class ArmReach(Task):
         return term
 
     def error(self, x: Tensor) -> Tensor:
+        """The distance to the target (with via-points: the distance to go, module docstring)."""
+        if self.via_points:
+            return self.distance_to_go(x)
         q, _, tgt = self._split(x)
         return torch.linalg.vector_norm(self.model.end_effector(q) - tgt, dim=-1)
 
     def success(self, x: Tensor) -> Tensor:
         _, v, _ = self._split(x)
-        return (self.error(x) < 0.05 * self.reach) & (v.abs() < self.success_speed).all(-1)
+        ok = (self.error(x) < 0.05 * self.reach) & (v.abs() < self.success_speed).all(-1)
+        if self.via_points:
+            ok = ok & (x[..., -1] >= self.via_points - 0.5)
+        return ok
 
     # --- MPC --------------------------------------------------------------------------------------------
     def mpc_cost(self, horizon: int, *, dtype=torch.float64, device=None):
         """A :class:`controllers.costs.ResidualCost` on ``[ee - target, q̇, pen]`` (the target read from
         the state, so one cost serves every environment; ``pen`` the penetrations into the obstacles grown by
         ``obstacle_margin · reach``), weights ``diag(1, 1, 0.01…, w_o…)`` per step and
-        ``diag(10, 10, 1…, w_o…)`` at the end, control weight ``c_u / τ_max²`` (physical torques)."""
+        ``diag(10, 10, 1…, w_o…)`` at the end, control weight ``c_u / τ_max²`` (physical torques).  With
+        via-points the first residual is ``ee − w_j`` (the next waypoint) instead of ``ee − target``."""
         from controllers.costs import ResidualCost
 
         kw = dict(dtype=dtype, device=device)
         k, n_obs = self.links, len(self.obstacles) * self.links
 
+        V = self.via_points
+
         def residual(x: Tensor) -> Tensor:
             q, v, tgt = self._split(x)
-            parts = [self.model.end_effector(q) - tgt, v]
+            parts = [self.model.end_effector(q) - (self.system.current(x) if V else tgt), v]
             if n_obs:
                 parts.append(self.penetration(x, self.obstacle_margin * self.reach).flatten(-2))
             return torch.cat(parts, -1)
@@ -317,6 +425,12 @@ class ArmReach(Task):
         xt = torch.as_tensor(np.asarray(x, dtype=np.float64))
         tgt = (float(xt[2 * self.links]), float(xt[2 * self.links + 1]))
         cv.disc(tgt, 0.05 * R, (60, 170, 60))
+        if self.via_points:  # passed ones grey, the next orange, the later ones light orange
+            pts, j = self.system.waypoints(xt[None])
+            for i in range(self.via_points):
+                color = (150, 150, 150) if i < int(j[0]) else ((230, 140, 30) if i == int(j[0])
+                                                                else (245, 200, 150))
+                cv.disc(pts[0, i].tolist(), self.via_radius * R, color)
         lv = torch.as_tensor(self.model.lengths).detach().to(torch.float64).reshape(-1)
         lv = lv.expand(self.links) if lv.numel() == 1 else lv.reshape(-1, self.links)[0]  # a batch: the first
         pts = PlanarArm(links=self.links, lengths=tuple(lv.tolist())).fk(xt[None, :self.links])[0].numpy()

@@ -183,3 +183,93 @@ def test_mpc_with_the_task_cost_reaches_the_targets():
     assert float(roll.u.abs().max()) <= task.max_torque + 1e-12
     assert not bool(task.terminated(roll.x).any())
     torch.testing.assert_close(roll.x[..., 4:], x0[:, None, 4:].expand(-1, 41, -1), atol=0, rtol=0)
+
+
+VIA = dict(via_points=2, max_episode_steps=150)
+
+
+def test_via_points_checkers_conformance_and_state_round_trip():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gym_check_env(gym.make(learning.env_id(NAME), render_mode="rgb_array", task_kwargs=VIA).unwrapped)
+        sb3_check_env(TaskEnv(NAME, VIA, render_mode="rgb_array"))
+    make = lambda mode: TaskVectorEnv(NAME, 5, task_kwargs=VIA, max_episode_steps=13, autoreset_mode=mode,  # noqa: E731
+                                      dtype=D64)
+    single = lambda: gym.make(learning.env_id(NAME), max_episode_steps=13, dtype=D64, task_kwargs=VIA)  # noqa: E731
+    assert len(check_vector_env(make, single, tol=1e-12)["checks"]) == 13
+    env = TaskEnv(NAME, VIA, dtype=D64)
+    env.reset(seed=2)
+    assert env.observation_space.shape == (3 * 2 + 4 + 2 * 2 + 5,)
+    for _ in range(20):
+        o, *_ = env.step(env.action_space.sample())
+        x = env.task.state_from_obs(torch.from_numpy(o)[None])[0].numpy()
+        d = x - env.state
+        d[:2] = (d[:2] + math.pi) % (2 * math.pi) - math.pi
+        np.testing.assert_allclose(d, 0, atol=1e-12)
+
+
+def test_via_points_are_passed_in_order_and_distance_to_go_never_grows():
+    """Hand-placed states of a 2-link arm (reach 1): the counter advances only inside the radius of the
+    *next* via-point, the distance to go is |ee − w_j| + the remaining legs, and passing a via-point never
+    increases it."""
+    task = ArmReach(via_points=2)
+    sys_ = task.system
+    # target (0, -0.8), via 1 at (1, 0) (the stretched arm's tip), via 2 at (0, 0.8); j = 0, at rest
+    x = torch.tensor([[0.0, 0.0, 0.0, 0.0, 0.0, -0.8, 1.0, 0.0, 0.0, 0.8, 0.0]], dtype=D64)
+    legs = math.hypot(1.0, 0.8) + 1.6
+    assert task.distance_to_go(x).item() == pytest.approx(0.0 + legs)
+    assert sys_.step(x, torch.zeros(1, 2, dtype=D64))[0, -1].item() == 0.0  # the system holds j
+    y = task.step(x, torch.zeros(1, 2, dtype=D64))
+    assert y[0, -1].item() == 1.0  # the tip sits on via 1: the task's event passes it
+    assert task.distance_to_go(y).item() == pytest.approx(math.hypot(1.0, 0.8) + 1.6, abs=1e-9)
+    assert task.distance_to_go(y).item() <= task.distance_to_go(x).item() + 1e-12
+    # a state on via 2 while via 1 is still pending: nothing is passed (order matters)
+    x2 = x.clone()
+    x2[0, 0], x2[0, 9] = math.pi / 2, 1.0  # the tip on via 2, moved to (0, 1)
+    y2 = task.step(x2, torch.zeros(1, 2, dtype=D64))
+    assert y2[0, -1].item() == 0.0
+    # success needs every via-point: at the target with j < V it is not a success
+    at_target = torch.tensor([[-math.pi / 2, 0.0, 0.0, 0.0, 0.0, -1.0, 1.0, 0.0, 0.0, 0.8, 1.0]], dtype=D64)
+    assert not task.success(at_target).item()
+    at_target[0, -1] = 2.0
+    assert task.success(at_target).item() and task.error(at_target).item() < 1e-12
+    # j saturates at V
+    assert task.step(at_target, torch.zeros(1, 2, dtype=D64))[0, -1].item() == 2.0
+    # the reward is minus the squared distance to go (plus the control cost)
+    r = task.reward(x, torch.zeros(1, 2, dtype=D64), y)
+    assert r.item() == pytest.approx(-task.distance_to_go(y).item() ** 2)
+
+
+def test_via_points_initial_states_and_observation_bounds():
+    task = ArmReach(via_points=3)
+    N = 400
+    x0 = task.initial_state(uniforms(keys_of_seeds(torch.arange(N)), torch.zeros(N, dtype=torch.int64),
+                                     task.n_noise, D64))
+    pts, j = task.system.waypoints(x0)
+    rho = torch.linalg.vector_norm(pts, dim=-1)
+    assert float(rho.min()) >= 0.25 * task.reach - 1e-12 and float(rho.max()) <= 0.9 * task.reach + 1e-12
+    assert (j == 0).all() and (x0[:, -1] == 0).all()
+    # the via-points are not the target's copy: independent draws
+    assert float((pts[:, 0] - pts[:, -1]).norm(dim=-1).min()) > 0
+    env = gym.make(learning.env_id(NAME), task_kwargs=dict(via_points=3))
+    rng = np.random.default_rng(0)
+    env.reset(seed=0)
+    for _ in range(300):
+        o, r, te, tr, _ = env.step(rng.uniform(-1, 1, 2).astype(np.float32))
+        assert env.observation_space.contains(o)
+        if te or tr:
+            env.reset()
+
+
+def test_mpc_passes_the_via_points_and_reaches_the_target():
+    """The task's expert (iLQR MPC on the task's system towards the next waypoint) on seeded episodes: every
+    via-point passed in order and the target reached."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        task = ArmReach(via_points=2, max_episode_steps=110)
+        expert = learning.MPCExpert(task, horizon=15, max_iter=3)
+        res = learning.evaluate(expert, task, num_envs=3, episodes=3, progress=False, timing_batch1=False)
+    finally:
+        torch.set_num_threads(n)
+    assert res.summary()["success_rate"] == 1.0, res.final_error

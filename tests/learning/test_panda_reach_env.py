@@ -1,7 +1,7 @@
-"""SE(3) end-effector reaching with the Panda: gymnasium's and SB3's checkers, the vector env against the
-single env (conformance suite, float64), observation bounds (joint limits hit on purpose), the task's
-errors against an independent DH forward kinematics, the expert (SE(3) pose MPC + resolved rate) batched ==
-per-sample and reaching every goal."""
+"""SE(3) end-effector reaching with the Panda: gymnasium's and SB3's checkers, observation bounds (joint
+limits hit on purpose), the task's errors against an independent DH forward kinematics, the expert (SE(3)
+pose MPC + resolved rate) batched == per-sample and reaching every goal (the vector-env conformance suite
+runs in test_vector for every task)."""
 
 import math
 import warnings
@@ -16,7 +16,6 @@ from stable_baselines3.common.env_checker import check_env as sb3_check_env
 import learning
 from controllers.systems.panda import PANDA_DQ_MAX, Panda
 from learning import TASKS, TaskEnv, TaskVectorEnv, evaluate
-from learning.conformance import check_vector_env
 from learning.envs.panda_reach import PandaReach, PandaReachExpert
 from learning.policies import as_policy
 
@@ -44,14 +43,6 @@ def test_registered_and_checkers_pass_without_warnings():
         gym_check_env(gym.make(learning.env_id(NAME), render_mode="rgb_array").unwrapped)
         gym_check_env(gym.make(learning.env_id(NAME), dtype=D64, render_mode="rgb_array").unwrapped)
         sb3_check_env(TaskEnv(NAME, render_mode="rgb_array"))
-
-
-def test_vector_env_conformance_and_equivalence_float64():
-    make = lambda mode: TaskVectorEnv(NAME, 4, max_episode_steps=9, autoreset_mode=mode,  # noqa: E731
-                                      dtype=D64)
-    single = lambda: gym.make(learning.env_id(NAME), max_episode_steps=9, dtype=D64)  # noqa: E731
-    report = check_vector_env(make, single, tol=1e-12)
-    assert len(report["checks"]) == 13
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, D64])
@@ -143,7 +134,7 @@ def test_expert_batched_equals_per_sample(one_thread):
 
 
 def test_expert_reaches_every_goal_pose(one_thread):
-    res = evaluate("mpc", NAME, num_envs=8, episodes=8, progress=False)
+    res = evaluate("mpc", NAME, num_envs=8, episodes=8, progress=False, timing_batch1=False)
     s = res.summary()
     assert s["success_rate"] == 1.0 and s["nonconverged_rate"] == 0.0
     assert s["final_error"]["max"] < 1e-3
