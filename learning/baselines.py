@@ -134,7 +134,8 @@ def _sb3_class(algo: str):
 
 def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None = None,
                tensorboard_log: str | Path | None = None, device: str = "cpu",
-               params: dict[str, Any] | None = None):
+               params: dict[str, Any] | None = None, policy: Any = "MlpPolicy",
+               policy_kwargs: dict[str, Any] | None = None):
     """A fresh SB3 agent (``PPO`` or ``SAC``, ``MlpPolicy``) on ``num_envs`` batched training environments
     of ``task`` (an :class:`~learning.sb3.SB3VecEnv` in a ``VecMonitor``).
 
@@ -146,6 +147,8 @@ def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None 
         tensorboard_log: folder for SB3's TensorBoard logs (needs the ``tensorboard`` package).
         device: torch device of the networks.
         params: hyperparameters (default :func:`hyperparams`); ``n_envs`` is taken out of them.
+        policy, policy_kwargs: SB3's policy (class or name) and its arguments, e.g.
+            :class:`learning.mpc_policy.MPCActorCriticPolicy` with ``{"task": task}``.
     """
     from stable_baselines3.common.vec_env import VecMonitor
 
@@ -156,7 +159,9 @@ def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None 
     n = int(kw.pop("n_envs", 1) if num_envs is None else num_envs)
     kw.pop("n_envs", None)
     env = VecMonitor(SB3VecEnv(task, n))
-    model = _sb3_class(algo)("MlpPolicy", env, seed=int(seed), device=device,
+    if policy_kwargs is not None:
+        kw["policy_kwargs"] = dict(policy_kwargs)
+    model = _sb3_class(algo)(policy, env, seed=int(seed), device=device,
                              tensorboard_log=None if tensorboard_log is None else str(tensorboard_log),
                              verbose=0, **kw)
     model.env.seed(train_env_seed(seed))  # SB3 seeded the envs with `seed`; ours are disjoint per seed
@@ -198,7 +203,8 @@ def _curve_point(model, task: Task, seeds: list[int]) -> tuple[float, float]:
 def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_every: int | None = None,
           eval_episodes: int = 16, out_dir: str | Path | None = None, *, num_envs: int | None = None,
           params: dict[str, Any] | None = None, tensorboard: bool = True, device: str = "cpu",
-          log=None) -> TrainResult:
+          log=None, policy: Any = "MlpPolicy", policy_kwargs: dict[str, Any] | None = None,
+          max_train_s: float | None = None) -> TrainResult:
     """Train ``algo`` on ``task`` for ``budget_steps`` environment steps and record its learning curve.
 
     The deterministic policy is evaluated (:func:`learning.evaluate`, all ``eval_episodes`` episodes in
@@ -209,7 +215,9 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
     the first multiple of ``num_envs`` past each ``k·eval_every``, and PPO ends at its first full rollout
     past the budget.  With ``out_dir``, ``model.zip``, ``policy.pt`` and ``agent.json`` are written there
     (:func:`save_agent`) and TensorBoard logs go to ``out_dir/tb`` when possible.  ``log(str)`` receives a
-    line per evaluation.
+    line per evaluation.  ``policy``/``policy_kwargs`` go to :func:`make_agent`.  With ``max_train_s``
+    training also stops once its own wall time (evaluations excluded) exceeds that many seconds (an
+    equal-wall-time comparison); ``num_timesteps`` then tells how far it got.
     """
     from stable_baselines3.common.callbacks import BaseCallback
 
@@ -238,7 +246,8 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
             tb = Path(out_dir) / "tb"
         else:
             notes.append("TensorBoard logging skipped: the 'tensorboard' package is not installed")
-    model = make_agent(algo, task, seed, tensorboard_log=tb, device=device, params=kw)
+    model = make_agent(algo, task, seed, tensorboard_log=tb, device=device, params=kw, policy=policy,
+                       policy_kwargs=policy_kwargs)
     curve: dict[str, list] = {"steps": [], "returns": [], "success": []}
     clock = {"eval": 0.0}
 
@@ -268,10 +277,13 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
                     self.next += every
 
         def _on_step(self) -> bool:
-            return True
+            if max_train_s is None:
+                return True
+            return time.perf_counter() - clock["start"] - (clock["eval"] - clock["e0"]) < max_train_s
 
     point(0)
     e0, t0 = clock["eval"], time.perf_counter()
+    clock["start"], clock["e0"] = t0, e0
     model.learn(total_timesteps=budget_steps, callback=_Curve(), tb_log_name=f"{algo}_seed{seed}")
     wall = time.perf_counter() - t0
     train_time = wall - (clock["eval"] - e0)  # the evaluations during training are not training time

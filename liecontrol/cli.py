@@ -22,6 +22,8 @@ _COMMANDS: tuple[tuple[tuple[str, ...], str, str], ...] = (
     (("bench", "ilqr"), "liecontrol.bench.ilqr", "iLQR swing-up vs mpc.pytorch box-DDP"),
     (("bench", "envs"), "liecontrol.bench.envs", "vector-env steps/s vs gymnasium SyncVectorEnv and EnvPool"),
     (("compare",), "liecontrol.compare", "MPC expert vs PPO/SAC trained within a step budget, same seeds"),
+    (("learn",), "liecontrol.learn",
+     "learning with the MPC: MPC-headed PPO vs PPO (equal steps, equal time); behaviour cloning"),
     (("reproduce", "me2"), "liecontrol.reproduce.me2",
      "seed 000 Sec. 4: ME2 horizon prediction, Table 1, Fig. 3-4"),
     (("reproduce", "quadrotor"), "liecontrol.reproduce.quadrotor",

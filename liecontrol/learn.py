@@ -1,0 +1,265 @@
+"""``liecontrol learn``: learning *with* the differentiable MPC (issue 12 §5-§6), measured and reported.
+
+``liecontrol learn mpc-ppo ENV``
+    PPO with the MPC-headed policy (:class:`learning.mpc_policy.MPCActorCriticPolicy`: observation → cost
+    network → iLQR MPC → action; untrained it *is* the task's MPC) against plain PPO (``MlpPolicy``, the
+    task's tuned settings) at **equal environment steps** and at **equal training wall time** (plain PPO
+    trained until its own training clock reaches the MPC-headed run's), per training seed, all evaluated on
+    the same held-out episodes (:func:`learning.evaluate`); with the per-step compute of each policy at
+    batch 1 and their ratio.  Writes ``OUT/ENV/report.md``, ``curves.png`` and ``learn.json``.
+
+``liecontrol learn bc ENV``
+    Behaviour cloning from the task's MPC expert (:func:`learning.bc.bc_study`): an MLP policy and,
+    separately, the MPC layer's cost weights learned from 1, 2, 5, … expert episodes; held-out action
+    error and closed-loop success against the number of demonstrations.  Writes ``OUT/ENV/bc.md``,
+    ``bc.png`` and ``bc.json``.
+
+JSON of ``mpc-ppo``: ``{"env", "steps", "seeds", "eval_seeds", "mpc_ppo": [per seed],
+"ppo_equal_steps": [...], "ppo_equal_time": [...], "step_ms_batch1": {"mpc_ppo", "ppo", "ratio"}}``,
+each per-seed record ``{"seed", "num_timesteps", "train_time_s", "return_mean", "return_std",
+"success_rate", "curve"}``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from liecontrol.compare import resolve_env
+from liecontrol.report import markdown_cell, positive_int, print_table, restores_threads
+
+__all__ = ["mpc_ppo", "bc", "add_arguments", "run"]
+
+
+def _record(res, ev) -> dict:
+    return {"seed": res.seed, "num_timesteps": res.num_timesteps, "train_time_s": res.train_time_s,
+            "return_mean": float(np.mean(ev.returns)), "return_std": float(np.std(ev.returns)),
+            "success_rate": float(np.mean(ev.success)), "curve": res.curve()}
+
+
+def _mpc_ppo_params(task) -> dict:
+    """Plain PPO's settings for the task, less what the MPC-headed policy does not support (gSDE: its
+    action noise is SB3's state-independent diagonal Gaussian)."""
+    from learning.baselines import hyperparams
+
+    kw = hyperparams("ppo", task)
+    kw.pop("use_sde", None)
+    kw.pop("sde_sample_freq", None)
+    return kw
+
+
+@restores_threads
+def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 16, horizon: int | None = None,
+            max_iter: int = 5, out: str | Path = "out/learn", threads: int = 1, log=None) -> dict:
+    """Run the comparison of the module docstring and write its files; returns the JSON record (plus
+    ``"_files"``)."""
+    from learning import baselines as bl
+    from learning.envs.single import make_task
+    from learning.evaluate import evaluate
+    from learning.mpc_policy import MPCActorCriticPolicy
+
+    torch.set_num_threads(threads)
+    task = make_task(resolve_env(env))
+    ev_seeds = bl.eval_seeds(eval_episodes)
+    say = log or (lambda s: None)
+    pk = {"task": task.name, "max_iter": int(max_iter)}
+    if horizon is not None:
+        pk["horizon"] = int(horizon)
+    every = max(1, steps // 10)
+    rec: dict = {"env": task.name, "steps": int(steps), "seeds": [int(s) for s in seeds],
+                 "eval_seeds": ev_seeds, "mpc_policy_kwargs": dict(pk), "mpc_ppo": [], "ppo_equal_steps": [],
+                 "ppo_equal_time": []}
+    last = {}
+    for s in seeds:
+        say(f"{task.name} seed {s}: PPO with the MPC-headed policy, {steps} steps")
+        r = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes, log=log,
+                     params=_mpc_ppo_params(task), policy=MPCActorCriticPolicy, policy_kwargs=pk,
+                     tensorboard=False)
+        ev = evaluate(r.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
+                      progress=False, timing_batch1=True)
+        rec["mpc_ppo"].append(_record(r, ev))
+        last["mpc_ppo"] = ev
+        say(f"{task.name} seed {s}: plain PPO, {steps} steps")
+        p = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes, log=log,
+                     tensorboard=False)
+        ev = evaluate(p.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
+                      progress=False, timing_batch1=True)
+        rec["ppo_equal_steps"].append(_record(p, ev))
+        last["ppo"] = ev
+        budget_s = r.train_time_s
+        say(f"{task.name} seed {s}: plain PPO for the MPC-headed run's training time, {budget_s:.0f} s")
+        q = bl.train("ppo", task, 10**9, seed=s, eval_every=max(every, 4096), eval_episodes=eval_episodes,
+                     log=log, tensorboard=False, max_train_s=budget_s)
+        ev = evaluate(q.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
+                      progress=False, timing_batch1=False)
+        rec["ppo_equal_time"].append(_record(q, ev))
+    a = float(np.median(last["mpc_ppo"].step_ms_batch1))
+    b = float(np.median(last["ppo"].step_ms_batch1))
+    rec["step_ms_batch1"] = {"mpc_ppo": a, "ppo": b, "ratio": a / b}
+    root = Path(out) / task.name
+    root.mkdir(parents=True, exist_ok=True)
+    files = {"json": str(root / "learn.json"), "report": str(root / "report.md"),
+             "curves": str(root / "curves.png")}
+    Path(files["json"]).write_text(json.dumps(rec, indent=1, allow_nan=False) + "\n")
+    _plot(rec, files["curves"])
+    Path(files["report"]).write_text(_report(rec))
+    rec["_files"] = files
+    return rec
+
+
+def _rows(rec: dict) -> list[dict]:
+    rows = []
+    for key, name in (("mpc_ppo", "PPO + MPC head"), ("ppo_equal_steps", "PPO, equal steps"),
+                      ("ppo_equal_time", "PPO, equal time")):
+        for r in rec[key]:
+            rows.append({"policy": name, "seed": r["seed"], "steps": r["num_timesteps"],
+                         "train_s": r["train_time_s"], "return_mean": r["return_mean"],
+                         "return_std": r["return_std"], "success": r["success_rate"]})
+    return rows
+
+
+def _report(rec: dict) -> str:
+    cols = ["policy", "seed", "steps", "train_s", "return_mean", "return_std", "success"]
+    lines = [f"# liecontrol learn mpc-ppo — {rec['env']}", "",
+             f"PPO with the MPC-headed policy (`MPCActorCriticPolicy`, {rec['mpc_policy_kwargs']}) "
+             f"against plain PPO (`MlpPolicy`, the task's tuned settings) at equal environment steps "
+             f"({rec['steps']}) and at equal training wall time; {len(rec['eval_seeds'])} held-out "
+             "episodes, the same for every policy.",
+             "", "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in _rows(rec):
+        lines.append("| " + " | ".join(markdown_cell(r[c]) for c in cols) + " |")
+    t = rec["step_ms_batch1"]
+    lines += ["", f"Per-step compute at batch 1 (median): MPC-headed policy {t['mpc_ppo']:.3g} ms, "
+              f"MLP policy {t['ppo']:.3g} ms — **{t['ratio']:.0f}×**.", "", "![curves](curves.png)", ""]
+    return "\n".join(lines)
+
+
+def _plot(rec: dict, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for key, name, c in (("mpc_ppo", "PPO + MPC head", "C0"), ("ppo_equal_steps", "PPO", "C1")):
+        for i, r in enumerate(rec[key]):
+            ax.plot(r["curve"]["steps"], r["curve"]["returns"], color=c, label=name if i == 0 else None)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel("mean evaluation return")
+    ax.set_title(f"{rec['env']}: MPC-headed PPO vs PPO")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+@restores_threads
+def bc(env, *, counts=(1, 2, 5, 10), heldout: int = 5, eval_episodes: int = 16, mlp_epochs: int = 200,
+       mpc_steps: int = 60, out: str | Path = "out/learn", threads: int = 1, log=None,
+       mlp_kwargs: dict | None = None, mpc_kwargs: dict | None = None, **study_kwargs) -> dict:
+    """The behaviour-cloning study of the module docstring; returns ``{"env", "records", "_files"}``.
+    ``env`` is a task name or a :class:`~learning.envs.task.Task`; ``mlp_kwargs``/``mpc_kwargs`` add to the
+    learners' settings and ``study_kwargs`` go to :func:`learning.bc.bc_study` (``expert``, ``num_envs``)."""
+    from learning.bc import bc_study
+    from learning.envs.task import Task
+
+    torch.set_num_threads(threads)
+    task = env if isinstance(env, Task) else resolve_env(env)
+    name = task.name if isinstance(task, Task) else task
+    recs = bc_study(task, list(counts), heldout_episodes=heldout, eval_episodes=eval_episodes,
+                    mlp_kwargs={"epochs": mlp_epochs, **(mlp_kwargs or {})},
+                    mpc_kwargs={"steps": mpc_steps, **(mpc_kwargs or {})}, log=log, **study_kwargs)
+    root = Path(out) / name
+    root.mkdir(parents=True, exist_ok=True)
+    files = {"json": str(root / "bc.json"), "report": str(root / "bc.md"), "plot": str(root / "bc.png")}
+    rec = {"env": name, "records": recs}
+    Path(files["json"]).write_text(json.dumps(rec, indent=1, allow_nan=False) + "\n")
+    cols = ["learner", "demos", "train_samples", "heldout_mse", "success_rate", "return_mean", "train_time_s"]
+    lines = [f"# liecontrol learn bc — {name}", "",
+             "Behaviour cloning from the task's MPC expert: an MLP policy, and the MPC layer's cost weights, "
+             f"learned from k expert episodes; held-out action error ({heldout} episodes) and closed-loop "
+             f"success ({eval_episodes} held-out episodes).", "",
+             "| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    for r in recs:
+        lines.append("| " + " | ".join(markdown_cell(r.get(c)) for c in cols) + " |")
+    Path(files["report"]).write_text("\n".join(lines + ["", "![bc](bc.png)", ""]))
+    _plot_bc(recs, name, files["plot"])
+    rec["_files"] = files
+    return rec
+
+
+def _plot_bc(recs: list[dict], name: str, path: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for learner, c in (("mlp", "C1"), ("mpc", "C0")):
+        pts = sorted((r["demos"], r["success_rate"]) for r in recs if r.get("learner") == learner)
+        if pts:
+            ax.plot(*zip(*pts), "o-", color=c, label=f"{learner} (cloned)")
+    exp = [r["success_rate"] for r in recs if r.get("learner") == "expert"]
+    if exp:
+        ax.axhline(exp[0], color="k", ls="--", label="MPC expert")
+    ax.set_xscale("log")
+    ax.set_xlabel("expert episodes")
+    ax.set_ylabel("closed-loop success rate")
+    ax.set_title(f"{name}: behaviour cloning")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("what", choices=["mpc-ppo", "bc"],
+                        help="mpc-ppo: MPC-headed PPO vs PPO; bc: behaviour cloning from the MPC expert")
+    parser.add_argument("env", metavar="ENV", type=resolve_env, help="task name or liecontrol/<name>-v0")
+    parser.add_argument("--steps", type=positive_int, default=20_000,
+                        help="mpc-ppo: environment steps per seed")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0], help="mpc-ppo: training seeds")
+    parser.add_argument("--horizon", type=positive_int, default=None, help="mpc-ppo: MPC head horizon")
+    parser.add_argument("--max-iter", type=positive_int, default=5, help="mpc-ppo: iLQR iterations per call")
+    parser.add_argument("--counts", default="1,2,5,10", help="bc: expert episodes, comma-separated")
+    parser.add_argument("--eval-episodes", type=positive_int, default=16, help="held-out evaluation episodes")
+    parser.add_argument("--out", default="out/learn", help="output root (writes OUT/ENV/...)")
+    parser.add_argument("--json", default=None, metavar="PATH", help="also write the JSON record here")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+
+
+def run(args: argparse.Namespace) -> int:
+    log = None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
+    t0 = time.perf_counter()
+    if args.what == "mpc-ppo":
+        rec = mpc_ppo(args.env, steps=args.steps, seeds=args.seeds, eval_episodes=args.eval_episodes,
+                      horizon=args.horizon, max_iter=args.max_iter, out=args.out, log=log)
+        print_table(_rows(rec), ["policy", "seed", "steps", "train_s", "return_mean", "return_std",
+                                 "success"])
+        t = rec["step_ms_batch1"]
+        print(f"per-step compute at batch 1: MPC head {t['mpc_ppo']:.3g} ms, MLP {t['ppo']:.3g} ms "
+              f"({t['ratio']:.0f}x)")
+    else:
+        try:
+            counts = [int(c) for c in args.counts.split(",")]
+        except ValueError:
+            counts = []
+        if not counts or min(counts) < 1:
+            print(f"liecontrol learn: error: argument --counts: expected positive ints like 1,2,5, got "
+                  f"{args.counts!r}", file=sys.stderr)
+            return 2
+        rec = bc(args.env, counts=counts, eval_episodes=args.eval_episodes, out=args.out, log=log)
+        print_table(rec["records"], ["learner", "demos", "heldout_mse", "success_rate", "return_mean"])
+    files = rec.pop("_files")
+    if args.json:
+        p = Path(args.json)
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_text(json.dumps(rec, indent=1, allow_nan=False) + "\n")
+    print(f"wrote {', '.join(files.values())} in {time.perf_counter() - t0:.0f} s")
+    return 0

@@ -1,0 +1,72 @@
+"""``liecontrol learn``: MPC-headed PPO against plain PPO at equal steps and equal wall time, and the
+behaviour-cloning study, end to end on tiny budgets; the wall-time stop of
+:func:`learning.baselines.train`."""
+
+import json
+import time
+
+import pytest
+
+from learning import baselines as bl
+from liecontrol import cli
+
+TASK = "PendulumSwingUp"
+
+
+def test_train_stops_at_its_wall_time_budget():
+    t0 = time.perf_counter()
+    res = bl.train("ppo", TASK, 10**7, seed=0, eval_every=10**6, eval_episodes=1, max_train_s=1.0,
+                   tensorboard=False)
+    assert res.num_timesteps < 10**6 and time.perf_counter() - t0 < 60
+    assert 1.0 <= res.train_time_s < 20.0  # it stops at the first step past the budget (SB3 rollout step)
+
+
+def test_mpc_ppo_command_writes_report_and_json(tmp_path):
+    out = tmp_path / "learn"
+    args = ["learn", "mpc-ppo", TASK, "--steps", "64", "--eval-episodes", "2", "--horizon", "5",
+            "--max-iter", "1", "--out", str(out), "--json", str(tmp_path / "r.json"), "--quiet"]
+    assert cli.main(args) == 0
+    rec = json.loads((tmp_path / "r.json").read_text())
+    assert rec == json.loads((out / TASK / "learn.json").read_text())
+    assert rec["env"] == TASK and rec["steps"] == 64 and rec["seeds"] == [0]
+    assert rec["eval_seeds"] == bl.eval_seeds(2)
+    assert rec["mpc_policy_kwargs"] == {"task": TASK, "max_iter": 1, "horizon": 5}
+    mp, same, eq_t = rec["mpc_ppo"][0], rec["ppo_equal_steps"][0], rec["ppo_equal_time"][0]
+    assert mp["num_timesteps"] >= 64 and same["num_timesteps"] == mp["num_timesteps"]
+    # equal wall time: plain PPO trained at least as long as the MPC-headed run, hence many more steps
+    assert eq_t["train_time_s"] >= mp["train_time_s"] and eq_t["num_timesteps"] > mp["num_timesteps"]
+    for r in (mp, same, eq_t):
+        assert 0 <= r["success_rate"] <= 1 and isinstance(r["return_mean"], float)
+        assert r["curve"]["steps"][0] == 0
+    t = rec["step_ms_batch1"]
+    assert t["mpc_ppo"] > 0 and t["ppo"] > 0 and t["ratio"] == pytest.approx(t["mpc_ppo"] / t["ppo"])
+    report = (out / TASK / "report.md").read_text()
+    assert "equal steps" in report and "equal time" in report and "Per-step compute" in report
+    assert (out / TASK / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bc_command_writes_the_study(tmp_path):
+    import liecontrol.learn as learn
+    from learning import MPCExpert, PendulumSwingUp
+
+    task = PendulumSwingUp(max_episode_steps=12)
+    rec = learn.bc(task, counts=(1,), heldout=1, eval_episodes=2, mlp_epochs=2, mpc_steps=1, out=tmp_path,
+                   expert=MPCExpert(task, horizon=6), num_envs=2, mlp_kwargs={"hidden": (8,)},
+                   mpc_kwargs={"horizon": 6, "window": 6})
+    d = tmp_path / TASK
+    saved = json.loads((d / "bc.json").read_text())
+    assert saved["env"] == TASK
+    pairs = [(r["learner"], r["demos"]) for r in saved["records"]]
+    assert pairs == [("expert", None), ("mlp", 1), ("mpc", 1)]
+    assert "| mlp | 1 |" in (d / "bc.md").read_text()
+    assert (d / "bc.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert rec["_files"]["json"] == str(d / "bc.json")
+
+
+def test_bad_arguments_exit_2(capsys):
+    assert cli.main(["learn", "bc", TASK, "--counts", "a,b", "--quiet"]) == 2
+    assert "--counts" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        cli.main(["learn", "mpc-ppo", "NoSuchTask"])
+    with pytest.raises(SystemExit):
+        cli.main(["learn", "mpc-ppo", TASK, "--steps", "0"])
