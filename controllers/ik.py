@@ -62,7 +62,9 @@ def dls_joint_velocity(J: Tensor, twist: Tensor, damping: Tensor | float = 1e-2,
     singular values below ``n · eps · σ_max`` dropped), so ``J`` times the null-space term is zero up to
     rounding: the joint-limit motion never changes the end-effector twist.  ``J (*B, 6, n)`` and ``twist``
     must be in the same frame (both "world" or both "body" for a :class:`~controllers.systems.panda.Panda`).
-    Batch dims broadcast; dtype and device follow ``J``.
+    Batch dims broadcast; dtype and device follow ``J``.  An element with a non-finite ``J``, twist or ``q``
+    gets NaN joint velocities; the others are computed as if it were absent (the SVD of one NaN matrix
+    would otherwise fail the whole batch).
     """
     if J.ndim < 2 or twist.shape[-1] != J.shape[-2]:
         raise ValueError(f"dls_joint_velocity: J (*B, m, n) and twist (*B, m) do not match: "
@@ -78,7 +80,8 @@ def dls_joint_velocity(J: Tensor, twist: Tensor, damping: Tensor | float = 1e-2,
     q_min, q_max = q_limits
     z = torch.as_tensor(nullspace_gain, dtype=J.dtype, device=J.device)[..., None] * joint_limit_gradient(
         q, q_min, q_max)
-    Jp = torch.linalg.pinv(J)
+    ok = torch.isfinite(J).all(-1).all(-1)
+    Jp = torch.linalg.pinv(torch.where(ok[..., None, None], J, 0.0))
     z_null = z - (Jp @ (J @ z.unsqueeze(-1))).squeeze(-1)
     return qd + z_null
 

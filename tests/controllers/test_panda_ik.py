@@ -192,3 +192,18 @@ def test_ik_already_solved_and_bad_inputs(panda):
         solve_ik(panda, torch.zeros(3, 3, dtype=D64))
     with pytest.raises(TypeError):
         solve_ik(panda, target, q0=Panda.home(torch.float32))
+
+
+def test_dls_a_nan_element_does_not_fail_the_batch():
+    """The null-space projector's SVD raised for the whole batch when one Jacobian had a NaN."""
+    robot = Panda()
+    gen = torch.Generator().manual_seed(7)
+    q = Panda.random_q(4, generator=gen, dtype=torch.float64)
+    J = robot.jacobian(q)
+    xi = torch.randn(4, 6, generator=gen, dtype=torch.float64)
+    lo, hi = Panda.joint_limits(torch.float64)
+    clean = dls_joint_velocity(J, xi, 1e-2, q, (lo, hi))
+    J[2, 0, 3] = math.nan
+    qd = dls_joint_velocity(J, xi, 1e-2, q, (lo, hi))
+    assert torch.isnan(qd[2]).all()
+    torch.testing.assert_close(qd[[0, 1, 3]], clean[[0, 1, 3]], rtol=0, atol=0)
