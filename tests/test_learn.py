@@ -3,7 +3,6 @@ behaviour-cloning study, end to end on tiny budgets; the wall-time stop of
 :func:`learning.baselines.train`."""
 
 import json
-import time
 
 import pytest
 
@@ -14,11 +13,11 @@ TASK = "PendulumSwingUp"
 
 
 def test_train_stops_at_its_wall_time_budget():
-    t0 = time.perf_counter()
     res = bl.train("ppo", TASK, 10**7, seed=0, eval_every=10**6, eval_episodes=1, max_train_s=1.0,
                    tensorboard=False)
-    assert res.num_timesteps < 10**6 and time.perf_counter() - t0 < 60
-    assert 1.0 <= res.train_time_s < 20.0  # it stops at the first step past the budget (SB3 rollout step)
+    # stopped by the clock (at the first environment step past it), far short of the step budget
+    assert res.num_timesteps < 10**6 and res.train_time_s >= 1.0
+    assert res.steps[-1] == res.num_timesteps  # the final evaluation is of the stopped policy
 
 
 def test_mpc_ppo_command_writes_report_and_json(tmp_path):

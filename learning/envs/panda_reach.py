@@ -38,7 +38,7 @@ from torch import Tensor
 from controllers.systems.panda import PANDA_DH, Panda
 from learning.envs._canvas import Canvas
 from learning.envs.arm import WithConstants
-from learning.envs.task import Task
+from learning.envs.task import ErrorStateExpert, Task
 
 __all__ = ["PandaVelocity", "PandaReach", "PandaReachExpert"]
 
@@ -184,7 +184,7 @@ class PandaReach(Task):
         return cv.img
 
 
-class PandaReachExpert:
+class PandaReachExpert(ErrorStateExpert):
     """SE(3) pose MPC + resolved-rate control on :class:`PandaReach` (module docstring); a
     :class:`learning.policies.Policy`.  The goal is held as the reference over the horizon (zero reference
     twists); the QP is warm-started with the previous plan; the solve follows the observation's dtype.
@@ -200,12 +200,11 @@ class PandaReachExpert:
     def __init__(self, task: PandaReach, horizon: int | None = None, *, q_p: float = 10.0, q_r: float = 3.0,
                  r: float = 0.1, terminal: float = 10.0, v_max: float = 0.8, w_max: float = 2.0,
                  damping: float = 1e-2):
+        super().__init__()
         self.task, self.horizon = task, int(horizon or 10)
         self.params = dict(q_p=q_p, q_r=q_r, r=r, terminal=terminal, v_max=v_max, w_max=w_max)
         self.damping = damping
         self._mpcs: dict = {}
-        self._warm: Tensor | None = None
-        self._info: dict[str, Tensor] | None = None
 
     def _mpc(self, dtype, device):
         from controllers.pose_mpc import PoseMPC, twist_box
@@ -231,22 +230,7 @@ class PandaReachExpert:
         goal = task.goal(x)
         X_ref = goal[:, None].expand(-1, H + 1, 4, 4)
         T_ref = obs.new_zeros(obs.shape[0], H, 6)
-        warm = self._warm if self._warm is not None and self._warm.shape == T_ref.shape else None
-        if warm is not None:
-            warm = torch.where(torch.isfinite(warm), warm, T_ref)
-        sol = self._mpc(obs.dtype, obs.device).solve(X, X_ref, T_ref, warm=warm)
-        self._warm = torch.cat([sol.U[:, 1:], sol.U[:, -1:]], 1)
-        self._info = {"iterations": sol.status.iterations.to(obs.device),
-                      "converged": sol.status.converged.to(obs.device)}
+        sol = self._mpc(obs.dtype, obs.device).solve(X, X_ref, T_ref, warm=self._warm_start(T_ref))
+        self._remember(sol, obs.device)
         _, qd = resolved_rate_step(task.robot, q, sol.u, task.dt, frame="body", damping=self.damping)
         return qd / task.u_scale(obs.dtype, obs.device)
-
-    def reset(self, done: Tensor | None = None) -> None:
-        if done is None or self._warm is None or done.shape != self._warm.shape[:1]:
-            self._warm = None
-        else:
-            self._warm = torch.where(done.to(self._warm.device)[:, None, None], torch.nan, self._warm)
-        self._info = None
-
-    def info(self) -> dict[str, Tensor] | None:
-        return self._info

@@ -47,7 +47,7 @@ from torch import Tensor
 
 from controllers.systems.quadrotor import Quadrotor
 from learning.envs._canvas import Canvas
-from learning.envs.task import Task
+from learning.envs.task import ErrorStateExpert, Task
 
 __all__ = ["QuadrotorClock", "QuadrotorTrack", "QuadrotorFigureEight", "QuadrotorTrackingExpert"]
 
@@ -289,7 +289,7 @@ class QuadrotorFigureEight(QuadrotorTrack):
     shape: str = "figure8"
 
 
-class QuadrotorTrackingExpert:
+class QuadrotorTrackingExpert(ErrorStateExpert):
     """The error-state MPC of seed 003 (:class:`~controllers.manifold_mpc.ErrorStateMPC`) on a
     :class:`QuadrotorTrack`: from each observation, the state ``(p, v, R)`` and phase ``k``; the reference of
     the next ``horizon`` steps from the task's table; one QP under the thrust and rate limits, warm-started
@@ -302,12 +302,11 @@ class QuadrotorTrackingExpert:
 
     def __init__(self, task: QuadrotorTrack, horizon: int | None = None, *, q_p: float = 100.0,
                  q_v: float = 10.0, q_R: float = 10.0, r_T: float = 0.1, r_w: float = 0.1):
+        super().__init__()
         self.task = task
         self.horizon = int(horizon or 25)
         self.weights = dict(Q=[q_p] * 3 + [q_v] * 3 + [q_R] * 3, R=[r_T] + [r_w] * 3)
         self._mpcs: dict[Any, Any] = {}
-        self._warm: Tensor | None = None
-        self._info: dict[str, Tensor] | None = None
 
     def _mpc(self, dtype, device):
         from controllers.manifold_mpc import ErrorStateMPC, riccati_terminal_weight
@@ -337,23 +336,8 @@ class QuadrotorTrackingExpert:
         x_ref = ProductState({"p": ref["p"][idx], "v": ref["v"][idx], "R": ref["R"][idx]},
                              {"p": 1, "v": 1, "R": 2})
         u_ref = ref["u"][idx[:, :H]]
-        warm = self._warm if self._warm is not None and self._warm.shape == u_ref.shape else None
-        if warm is not None:
-            warm = torch.where(torch.isfinite(warm), warm, u_ref)
-        sol = mpc.solve(sysm.point(x), x_ref, u_ref, warm=warm)
-        self._warm = torch.cat([sol.U[:, 1:], sol.U[:, -1:]], 1)
-        self._info = {"iterations": sol.status.iterations.to(obs.device),
-                      "converged": sol.status.converged.to(obs.device)}
+        sol = mpc.solve(sysm.point(x), x_ref, u_ref, warm=self._warm_start(u_ref))
+        self._remember(sol, obs.device)
         g = torch.as_tensor(sysm.quad.gravity, dtype=obs.dtype, device=obs.device)
         du = torch.cat([sol.u[:, :1] - g, sol.u[:, 1:]], -1)
         return du / task.u_scale(obs.dtype, obs.device)
-
-    def reset(self, done: Tensor | None = None) -> None:
-        if done is None or self._warm is None or done.shape != self._warm.shape[:1]:
-            self._warm = None
-        else:
-            self._warm = torch.where(done.to(self._warm.device)[:, None, None], torch.nan, self._warm)
-        self._info = None
-
-    def info(self) -> dict[str, Tensor] | None:
-        return self._info

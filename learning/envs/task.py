@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["Task", "angle_wrap", "terminal_weighted", "hi", "lo"]
+__all__ = ["Task", "ErrorStateExpert", "angle_wrap", "terminal_weighted", "hi", "lo"]
 
 
 def angle_wrap(a: Tensor) -> Tensor:
@@ -147,3 +147,38 @@ class Task:
         r = self.reward(x, u, x1)
         invalid = ~(ok & torch.isfinite(r))
         return x1, u, r, self.terminated(x1), invalid
+
+
+class ErrorStateExpert:
+    """What the experts built on :class:`controllers.manifold_mpc.ErrorStateMPC` share (a
+    :class:`learning.policies.Policy`): the previous plan, shifted by one step, warm-starts the next QP
+    (per element; :meth:`reset` forgets it where an episode ended), and :meth:`info` gives the last solve's
+    per-element iterations and certified convergence.  Subclasses call :meth:`_warm_start` and
+    :meth:`_remember` around their ``solve``."""
+
+    def __init__(self) -> None:
+        self._warm: Tensor | None = None
+        self._info: dict[str, Tensor] | None = None
+
+    def _warm_start(self, u_ref: Tensor) -> Tensor | None:
+        """The shifted previous plan for a solve about ``u_ref`` ``(N, H, m)`` (``u_ref`` where an element
+        was reset), or ``None`` when the batch changed."""
+        w = self._warm
+        if w is None or w.shape != u_ref.shape:
+            return None
+        return torch.where(torch.isfinite(w), w, u_ref)
+
+    def _remember(self, sol, device) -> None:
+        self._warm = torch.cat([sol.U[:, 1:], sol.U[:, -1:]], 1)
+        self._info = {"iterations": sol.status.iterations.to(device),
+                      "converged": sol.status.converged.to(device)}
+
+    def reset(self, done: Tensor | None = None) -> None:
+        if done is None or self._warm is None or done.shape != self._warm.shape[:1]:
+            self._warm = None
+        else:
+            self._warm = torch.where(done.to(self._warm.device)[:, None, None], torch.nan, self._warm)
+        self._info = None
+
+    def info(self) -> dict[str, Tensor] | None:
+        return self._info

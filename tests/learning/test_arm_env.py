@@ -264,12 +264,7 @@ def test_via_points_initial_states_and_observation_bounds():
 def test_mpc_passes_the_via_points_and_reaches_the_target():
     """The task's expert (iLQR MPC on the task's system towards the next waypoint) on seeded episodes: every
     via-point passed in order and the target reached."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        task = ArmReach(via_points=2, max_episode_steps=110)
-        expert = learning.MPCExpert(task, horizon=15, max_iter=3)
-        res = learning.evaluate(expert, task, num_envs=3, episodes=3, progress=False, timing_batch1=False)
-    finally:
-        torch.set_num_threads(n)
+    task = ArmReach(via_points=2, max_episode_steps=110)
+    expert = learning.MPCExpert(task, horizon=15, max_iter=3)
+    res = learning.evaluate(expert, task, num_envs=3, episodes=3, progress=False, timing_batch1=False)
     assert res.summary()["success_rate"] == 1.0, res.final_error
