@@ -29,6 +29,7 @@ caller holds (:func:`controllers.riccati.prepare`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Protocol, runtime_checkable
@@ -54,6 +55,7 @@ __all__ = [
     "QuadraticCost",
     "CanonicalCost",
     "ResidualCost",
+    "PeriodicQuadraticCost",
     "cost_derivatives",
     "autograd_derivatives",
     "hessian_rows",
@@ -390,6 +392,51 @@ class ResidualCost:
         gu = 2 * (self.R @ u.unsqueeze(-1)).squeeze(-1)
         R = self.R if self.R.dim() > 2 else self.R.unsqueeze(0)  # explicit time dim
         return gx, gu, 2 * JtQ @ J, None, 2 * R
+
+
+@dataclass(frozen=True, eq=False)
+class PeriodicQuadraticCost:
+    """A :class:`QuadraticCost` whose angle components are compared modulo ``2π``::
+
+        c(x, u) = base(μ + wrap(x − μ), u),   wrap(d) = ((d + π) mod 2π) − π  on the ``periodic`` components
+
+    so ``dx`` on an angle is the signed shortest angle to its reference and the cost is ``2π``-periodic in
+    it: a pendulum one turn away costs nothing more, and a plan that swings past the bottom is charged what
+    a wrapped reward charges it.  Off the cut (``|dx| < π``) it equals ``base``; its derivatives are
+    ``base``'s at the wrapped point (``d wrap/dd = 1`` away from the cut, where the cost is continuous but
+    its gradient flips sign — iLQR's line search handles the kink like any other non-convexity).
+
+    Args:
+        base: the quadratic cost (``x_ref`` μ; zero when it has none).
+        periodic: ``(n,)`` bool, the angle components.
+    """
+
+    base: QuadraticCost
+    periodic: Tensor
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.base, QuadraticCost):
+            raise TypeError("PeriodicQuadraticCost: field 'base' must be a QuadraticCost, got "
+                            f"{type(self.base).__name__}")
+        p = self.periodic
+        if not isinstance(p, Tensor) or p.dtype != torch.bool or p.shape != (self.base.n,):
+            got = f"{p.dtype} {tuple(p.shape)}" if isinstance(p, Tensor) else type(p).__name__
+            raise ValueError(f"PeriodicQuadraticCost: field 'periodic' must be a bool tensor of shape "
+                             f"({self.base.n},), got {got}")
+
+    def wrapped(self, x: Tensor) -> Tensor:
+        """``μ + wrap(x − μ)`` on the periodic components, ``x`` elsewhere (same shape as ``x``)."""
+        mu = self.base.x_ref
+        mu = torch.zeros((), dtype=x.dtype, device=x.device) if mu is None else mu
+        d = x - mu
+        w = mu + torch.remainder(d + math.pi, 2 * math.pi) - math.pi
+        return torch.where(self.periodic.to(x.device), w, x)
+
+    def evaluate(self, x: Tensor, u: Tensor) -> Tensor:
+        return self.base.evaluate(self.wrapped(x), u)
+
+    def derivatives(self, x: Tensor, u: Tensor):
+        return self.base.derivatives(self.wrapped(x), u)
 
 
 # --------------------------------------------------------------------------------------------------

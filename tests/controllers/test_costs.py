@@ -1,6 +1,8 @@
 """controllers.costs: QuadraticCost validation, canonical expansion against direct evaluation, via points,
 analytic derivatives against autograd, and the one scale convention (lq_coefficients)."""
 
+import math
+
 import pytest
 import torch
 from lq_oracle import spd
@@ -105,3 +107,80 @@ def test_quadratic_cost_derivatives_equal_autograd_and_lq_coefficients_round_tri
         torch.testing.assert_close(z[2], cost.N)
     torch.testing.assert_close(z[3], cc.q)
     torch.testing.assert_close(z[4], cc.r)
+
+
+# ---------------------------------------------------------------------------------------------------
+# PeriodicQuadraticCost: angles compared modulo 2π
+# ---------------------------------------------------------------------------------------------------
+
+
+def _periodic_cost(B=3, T=4, seed=0):
+    from controllers.costs import PeriodicQuadraticCost
+
+    g = torch.Generator().manual_seed(seed)
+    n, m = 3, 2
+    Q = spd(B, T + 1, k=n, g=g)
+    R = spd(B, T, k=m, g=g)
+    mu = torch.randn(B, T + 1, n, generator=g, dtype=torch.float64)
+    nu = torch.randn(B, T, m, generator=g, dtype=torch.float64)
+    base = QuadraticCost(Q=Q, R=R, x_ref=mu, u_ref=nu)
+    periodic = torch.tensor([True, False, True])
+    return PeriodicQuadraticCost(base, periodic), base, g
+
+
+def test_periodic_cost_is_the_base_off_the_cut_and_2pi_periodic_in_the_angles():
+    cost, base, g = _periodic_cost()
+    B, T1, n = base.x_ref.shape
+    u = torch.randn(B, T1 - 1, 2, generator=g, dtype=torch.float64)
+    # within π of the reference on every component: the plain quadratic cost
+    x = base.x_ref + (torch.rand(B, T1, n, generator=g, dtype=torch.float64) * 2 - 1) * 3.0
+    torch.testing.assert_close(cost.evaluate(x, u), base.evaluate(x, u), rtol=1e-14, atol=0)
+    # whole turns on the angles change nothing; on the other component they do
+    k = torch.randint(-3, 4, (B, T1, n), generator=g).double()
+    turns = 2 * math.pi * k * torch.tensor([1.0, 0.0, 1.0], dtype=torch.float64)
+    torch.testing.assert_close(cost.evaluate(x + turns, u), cost.evaluate(x, u), rtol=1e-12, atol=1e-12)
+    other = torch.tensor([0.0, 2 * math.pi, 0.0], dtype=torch.float64)
+    assert bool((cost.evaluate(x + other, u) - cost.evaluate(x, u)).abs().min() > 1e-3)
+    # the charged angle is the shortest one: |dx| = 3π/2 is charged as π/2
+    d = torch.zeros(B, T1, n, dtype=torch.float64)
+    d[..., 0] = 1.5 * math.pi
+    e = torch.zeros_like(d)
+    e[..., 0] = -0.5 * math.pi
+    torch.testing.assert_close(cost.evaluate(base.x_ref + d, u), base.evaluate(base.x_ref + e, u))
+
+
+def test_periodic_cost_derivatives_equal_autograd_and_gradcheck():
+    from controllers.costs import autograd_derivatives
+
+    cost, base, g = _periodic_cost(seed=1)
+    B, T1, n = base.x_ref.shape
+    x = base.x_ref + (torch.rand(B, T1, n, generator=g, dtype=torch.float64) * 2 - 1) * 9.0  # across cuts
+    u = torch.randn(B, T1 - 1, 2, generator=g, dtype=torch.float64)
+    mine = cost.derivatives(x, u)
+    ref = autograd_derivatives(cost, x, u)
+    for a, b in zip(mine, ref):
+        if a is None or b is None:
+            continue
+        torch.testing.assert_close(a.expand_as(b), b, rtol=1e-10, atol=1e-10)
+    # away from the cut the cost is smooth in the state and the reference: float64 gradcheck
+    xs = (base.x_ref + 0.5).clone().requires_grad_(True)
+    mu = base.x_ref.clone().requires_grad_(True)
+    from controllers.costs import PeriodicQuadraticCost
+
+    def f(xs, mu):
+        q = QuadraticCost(Q=base.Q, R=base.R, x_ref=mu, u_ref=base.u_ref)
+        c = PeriodicQuadraticCost(q, cost.periodic)
+        return c.evaluate(xs + 4 * math.pi, u)  # two turns off: the wrapped branch
+    assert torch.autograd.gradcheck(f, (xs, mu))
+
+
+def test_periodic_cost_rejects_a_bad_mask():
+    from controllers.costs import PeriodicQuadraticCost
+
+    _, base, _ = _periodic_cost()
+    with pytest.raises(ValueError, match="periodic"):
+        PeriodicQuadraticCost(base, torch.tensor([True, False]))
+    with pytest.raises(ValueError, match="periodic"):
+        PeriodicQuadraticCost(base, torch.tensor([1, 0, 1]))
+    with pytest.raises(TypeError, match="base"):
+        PeriodicQuadraticCost("not a cost", torch.tensor([True]))

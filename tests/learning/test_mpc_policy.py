@@ -7,11 +7,11 @@ import pytest
 import torch
 from stable_baselines3 import PPO
 
+from controllers.costs import PeriodicQuadraticCost, QuadraticCost
 from controllers.ilqr import ILQROptions
 from controllers.mpc import MPCPolicy
 from learning.envs.single import make_task
-from learning.mpc_policy import MPCActorCriticPolicy, make_mpc_ppo
-from learning.policies import _FixedCost
+from learning.mpc_policy import DEFAULT_TERMINAL_FACTOR, MPCActorCriticPolicy, make_mpc_ppo
 
 H, IT = 10, 3  # short horizon, few iterations: fast tests
 PK = dict(horizon=H, max_iter=IT)
@@ -50,6 +50,24 @@ def _perturb(policy: MPCActorCriticPolicy, scale: float = 0.3, seed: int = 1) ->
         last.bias.copy_(scale * torch.randn(last.bias.shape, generator=g))
 
 
+class _TaskCostPeriodic(torch.nn.Module):
+    """The reference cost built here from ``task.mpc_cost``: the angle compared modulo 2π with the target,
+    the terminal weight ``factor`` times the running one (None: the task's)."""
+
+    def __init__(self, task, horizon, angle, factor):
+        super().__init__()
+        c = task.mpc_cost(horizon, dtype=torch.float32)
+        Q = c.Q.expand(horizon + 1, task.n, task.n).clone()
+        if factor is not None:
+            Q[-1] = factor * Q[-2]
+        self.base = QuadraticCost(Q=Q, R=c.R, x_ref=c.x_ref, u_ref=c.u_ref)
+        self.mask = torch.zeros(task.n, dtype=torch.bool)
+        self.mask[angle] = True
+
+    def forward(self, obs):
+        return PeriodicQuadraticCost(self.base, self.mask)
+
+
 @pytest.mark.parametrize("name", ["PendulumSwingUp", "CartPoleSwingUp"])
 def test_untrained_policy_is_the_task_mpc(name):
     model = _model(name)
@@ -58,17 +76,65 @@ def test_untrained_policy_is_the_task_mpc(name):
     with torch.no_grad():
         a = model.policy._predict(obs, deterministic=True)
     umax = torch.tensor(task.u_max(), dtype=torch.float32)
-    ref = MPCPolicy(task.system, H, _FixedCost(task, H), u_lower=-umax, u_upper=umax, grad="none",
-                    options=ILQROptions(max_iter=IT))
+    angle = {"PendulumSwingUp": 0, "CartPoleSwingUp": 1}[name]
+    factor = DEFAULT_TERMINAL_FACTOR.get(name)
+    assert model.policy.terminal_factor == factor
+    ref = MPCPolicy(task.system, H, _TaskCostPeriodic(task, H, angle, factor), u_lower=-umax, u_upper=umax,
+                    grad="none", options=ILQROptions(max_iter=IT))
     x = task.state_from_obs(obs)
     c = task.mpc_cost(H).x_ref.reshape(-1)
     ang = torch.zeros(task.n, dtype=torch.bool)
-    ang[{"PendulumSwingUp": 0, "CartPoleSwingUp": 1}[name]] = True  # the angle, taken around the target
+    ang[angle] = True  # the angle, taken around the target
     x = torch.where(ang, torch.remainder(x - c.float() + math.pi, 2 * math.pi) - math.pi + c.float(), x)
     u, _ = ref(x)
     assert a.dtype == torch.float32
     torch.testing.assert_close(a, u / umax, rtol=0, atol=1e-4)
     assert bool((a.abs() < 0.999).any())  # not all saturated: the comparison means something
+
+
+def test_untrained_head_swings_the_pendulum_up_statelessly():
+    """The MPC head with its defaults (horizon 20, 5 cold iLQR iterations per call, float32, no memory
+    between calls) solves the swing-up from the held-out initial states: the periodic cost is what makes a
+    stateless MPC work (with a plain quadratic one the branch of the angle flips at the bottom)."""
+    from learning.evaluate import evaluate
+
+    model = make_mpc_ppo("PendulumSwingUp", num_envs=2, n_steps=64, batch_size=64, seed=0)
+    assert model.policy.horizon == 20 and model.policy.max_iter == 5
+    r = evaluate(model, "PendulumSwingUp", num_envs=8, seed=1_000_000, dtype=torch.float32, progress=False,
+                 timing_batch1=False)
+    assert bool(r.success.all()), r.final_error
+    assert float(r.returns.mean()) > -200, r.returns  # the tuned PPO of BENCHMARKS.md: -147 over 32 episodes
+
+
+def test_implicit_gradient_of_the_action_equals_finite_differences():
+    """d(action)/d(cost network output bias) through the periodic cost and the implicit iLQR gradient,
+    float64, converged solves on unsaturated states, against central differences."""
+    from learning.mpc_policy import MPCExtractor
+
+    task = make_task("PendulumSwingUp")
+    ex = MPCExtractor(task, task.obs_dim, horizon=12, options=ILQROptions(max_iter=200), terminal_factor=1.0)
+    ex = ex.double()
+    g = torch.Generator().manual_seed(4)
+    with torch.no_grad():
+        ex.mpc.cost.net[-1].weight.copy_(0.1 * torch.randn(ex.mpc.cost.net[-1].weight.shape, generator=g))
+    x = torch.tensor([[math.pi + 0.02, 0.03], [math.pi - 0.01, -0.04], [-math.pi + 0.015, 0.02]],
+                     dtype=torch.float64)
+    obs = task.observe(x)  # the third is the first turn's upright, seen from the other branch
+    bias = ex.mpc.cost.net[-1].bias
+    a = ex.forward_actor(obs)
+    assert bool((a.abs() < 0.99).all())
+    J = torch.stack([torch.autograd.grad(a[i, 0], bias, retain_graph=True)[0] for i in range(3)])
+    assert float(J.abs().max()) > 1e-3  # the action does depend on the cost network
+    h = 1e-6
+    for j in range(bias.numel()):
+        with torch.no_grad():
+            bias[j] += h
+            ap = ex.forward_actor(obs)
+            bias[j] -= 2 * h
+            am = ex.forward_actor(obs)
+            bias[j] += h
+        fd = (ap - am)[:, 0] / (2 * h)
+        torch.testing.assert_close(J[:, j], fd, rtol=1e-5, atol=1e-7)
 
 
 def test_any_batch_size_batched_equals_loop():
