@@ -112,7 +112,8 @@ class MPCAdapter(Policy):
     ``π + hysteresis`` of the center, else it is taken in ``[c − π, c + π)``.  Without the hysteresis the
     branch would flip back and forth for a pendulum hanging at the cut opposite the target, and the MPC
     would push it one way and then the other.  The MPC's physical control ``u``
-    becomes the normalized action ``u / u_max``.  The warm start
+    becomes the normalized action ``u / u_max``, clipped to the task's one-step safety box
+    (:meth:`~learning.envs.task.Task.safe_action_box`) where it has one.  The warm start
     (:class:`~controllers.mpc.MPCState`) is kept here, one per batch element, and cold-started per element
     by :meth:`reset` (``MPCState.reset``).  :meth:`info` gives the iterations and the certified
     convergence (``status.converged``: KKT residual checked below tolerance) of each element's last solve.
@@ -169,7 +170,9 @@ class MPCAdapter(Policy):
                       "converged": self._state.converged.to(obs.device)}
         if self._scale is None or self._scale.dtype != obs.dtype or self._scale.device != obs.device:
             self._scale = self.task.u_scale(obs.dtype, obs.device)
-        return u.detach().to(device=obs.device, dtype=obs.dtype) / self._scale
+        a = u.detach().to(device=obs.device, dtype=obs.dtype) / self._scale
+        box = self.task.safe_action_box(self.task.state_from_obs(obs))
+        return a if box is None else torch.minimum(torch.maximum(a, box[0]), box[1])
 
     def _branch(self, x: Tensor) -> Tensor:
         mask, c = (v.to(device=x.device) for v in self._wrap)

@@ -101,6 +101,23 @@ class CarParking(Task):
         return ((x[..., 0].abs() > X) | (x[..., 1].abs() > X) | (x[..., 3].abs() > self.speed_limit)
                 | (x[..., 4].abs() > self.steer_limit))
 
+    #: distance to the speed and steering limits that :meth:`safe_action_box` keeps
+    safety_margin: ClassVar[float] = 0.05
+
+    def safe_action_box(self, x: Tensor) -> tuple[Tensor, Tensor]:
+        """Actions whose next speed and steering angle stay ``safety_margin`` inside ``speed_limit`` and
+        ``steer_limit`` (one explicit Euler step: ``v⁺ = v + dt u₁``, ``ϕ⁺ = ϕ + dt u₂``).  The iLQR MPC has
+        no state constraints; without this filter it steered past the lock in 2 of 16 held-out episodes."""
+        dt = float(torch.as_tensor(self.model.dt).max())
+        kw = dict(dtype=x.dtype, device=x.device)
+        lim = torch.tensor([self.speed_limit, self.steer_limit], **kw) - self.safety_margin
+        rate = dt * torch.tensor([self.max_accel, self.max_steer_rate], **kw)
+        s = x[..., 3:5]
+        one = torch.ones((), dtype=x.dtype, device=x.device)
+        hi = ((lim - s) / rate).clamp(-one, one)
+        lo = ((-lim - s) / rate).clamp(-one, one)
+        return torch.minimum(lo, hi), hi
+
     def error(self, x: Tensor) -> Tensor:
         return torch.hypot(x[..., 0], x[..., 1])
 

@@ -110,6 +110,13 @@ class Task:
         """``(size, size, 3)`` uint8 image of one state ``x (n,)``."""
         raise NotImplementedError
 
+    def safe_action_box(self, x: Tensor) -> tuple[Tensor, Tensor] | None:
+        """``(lo, hi)`` bounds ``(N, m)`` on the normalized action at states ``x (N, n)`` that keep the next
+        state inside the limits whose crossing ends the episode (a one-step safety filter; an MPC without
+        those state constraints clips its first control to it), or ``None`` (the default): no such limits.
+        ``lo ≤ hi`` everywhere, both within ``[-1, 1]``."""
+        return None
+
     def expert(self, horizon: int | None = None, **kwargs):
         """The task's own MPC expert (a :class:`learning.policies.Policy`), or ``None`` (the default): the
         iLQR :class:`learning.policies.MPCExpert` on ``system`` and ``mpc_cost`` solves it.  Tasks whose

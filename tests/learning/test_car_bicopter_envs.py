@@ -224,3 +224,48 @@ def test_mpc_solves_bicopter_hover(one_thread):
 def test_mpc_parks_the_car(one_thread):
     ok, err = _mpc_episode("CarParking", range(4), steps=120, horizon=40, period=10)
     assert ok.all() and (err < 0.05).all(), err
+
+
+def test_car_safe_action_box_keeps_speed_and_steering_inside_the_limits():
+    task = CarParking()
+    g = torch.Generator().manual_seed(5)
+    N = 4000
+    # states anywhere up to the limits (and a little past them: the box must stay non-empty)
+    x = torch.rand(N, 5, generator=g, dtype=D64) * 2 - 1
+    x[:, 3] *= task.speed_limit * 1.02
+    x[:, 4] *= task.steer_limit * 1.02
+    lo, hi = task.safe_action_box(x)
+    assert lo.shape == hi.shape == (N, 2) and bool((lo <= hi).all())
+    assert bool((lo >= -1).all()) and bool((hi <= 1).all())
+    inside = (x[:, 3].abs() <= task.speed_limit - task.safety_margin) & \
+        (x[:, 4].abs() <= task.steer_limit - task.safety_margin)
+    # from inside, every action of the box keeps the next state inside (corners and random points)
+    um = task.u_scale(D64, "cpu")
+    for w in (torch.zeros(N, 2, dtype=D64), torch.ones(N, 2, dtype=D64),
+              torch.rand(N, 2, generator=g, dtype=D64), torch.tensor([[0.0, 1.0]], dtype=D64).expand(N, 2)):
+        a = lo + w * (hi - lo)
+        nxt = task.step(x, a * um)
+        assert not task.terminated(nxt)[inside].any()
+        assert bool((nxt[inside, 3].abs() <= task.speed_limit - task.safety_margin + 1e-12).all())
+    # the box only cuts where it must: far from the limits it is the whole action space
+    calm = (x[:, 3].abs() < 1.0) & (x[:, 4].abs() < 1.0)
+    assert bool((lo[calm] == -1).all()) and bool((hi[calm] == 1).all())
+
+
+def test_car_expert_respects_the_steering_lock_where_the_unfiltered_mpc_crossed_it(one_thread):
+    """Held-out episode 1000005 of `liecontrol compare CarParking`: the unfiltered MPC expert steered past
+    the lock at step 17 (the episode terminated); filtered, it goes on and never leaves the box."""
+    from learning.policies import task_expert
+
+    task = CarParking()
+    env = TaskVectorEnv(task, num_envs=1, dtype=D64)
+    obs, _ = env.reset(seed=[1000005])
+    pol = task_expert(task)
+    for _ in range(40):
+        o = torch.as_tensor(obs)
+        a = pol.act(o)
+        lo, hi = task.safe_action_box(task.state_from_obs(o))
+        assert bool(((a >= lo) & (a <= hi)).all())
+        obs, _, te, tr, _ = env.step(a.numpy())
+        assert not te.any()
+    assert abs(float(env.state[0, 4])) <= task.steer_limit - task.safety_margin + 1e-12
