@@ -69,3 +69,16 @@ def test_bad_arguments_exit_2(capsys):
         cli.main(["learn", "mpc-ppo", "NoSuchTask"])
     with pytest.raises(SystemExit):
         cli.main(["learn", "mpc-ppo", TASK, "--steps", "0"])
+
+
+def test_mpc_head_ppo_settings_cap_the_learning_rate_and_drop_gsde():
+    from learning.envs.single import make_task
+    from liecontrol.learn import MPC_HEAD_MAX_LR, _mpc_ppo_params
+
+    task = make_task("PendulumSwingUp")
+    plain = bl.hyperparams("ppo", task)
+    head = _mpc_ppo_params(task)
+    assert plain["learning_rate"] > MPC_HEAD_MAX_LR and head["learning_rate"] == MPC_HEAD_MAX_LR
+    assert "use_sde" in plain and "use_sde" not in head and "sde_sample_freq" not in head
+    assert {k: v for k, v in head.items() if k != "learning_rate"} == \
+        {k: v for k, v in plain.items() if k not in ("learning_rate", "use_sde", "sde_sample_freq")}
