@@ -27,6 +27,7 @@ Python loop over environments anywhere (not in step, not in autoreset, not in se
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from typing import Any
 
 import gymnasium as gym
@@ -55,6 +56,106 @@ def as_autoreset_mode(mode) -> AutoresetMode:
                      f"{[m.name.lower() for m in AutoresetMode]}, got {mode!r}")
 
 
+def _as_compile_mode(compile) -> str | None:
+    if compile is False or compile is None:
+        return None
+    if compile is True or compile == "inductor":
+        return "inductor"
+    if compile == "aot":
+        return "aot"
+    raise ValueError(f"TaskVectorEnv: argument 'compile' must be False, True, 'inductor' or 'aot', "
+                     f"got {compile!r}")
+
+
+def _restart(task: Task, which, x, t, key, episode):
+    """``(x, t, episode)`` with the next episode of each key started where ``which`` (the others as given)."""
+    episode = episode + which.to(episode.dtype)
+    x0 = task.initial_state(uniforms(key, episode, task.n_noise, x.dtype))
+    return torch.where(which[:, None], x0, x), torch.where(which, 0, t), episode
+
+
+class _StepCore(torch.nn.Module):
+    """The pure part of a step: no host synchronization, no branch on data, nothing stored (what the
+    compiled modes compile).
+
+    ``(x, t, a, ended, key, episode) -> (x, t, episode, obs, reward, terminated, truncated, invalid,
+    ended, flags[, final_obs])`` after the step, with ``flags = [ended_before.any(), invalid.any(),
+    ended_after.any()]`` in one tensor (the env reads all three with one synchronization).  With
+    ``autoreset`` NEXT_STEP or SAME_STEP the reset is done here too, for every environment at once: the
+    next episode's initial state is drawn for all and selected where one starts (a few fused operations
+    per environment; the env runs this variant only at a step where a reset is due, the ``autoreset=None``
+    one otherwise).  SAME_STEP returns the ended episodes' last observations as ``final_obs``.
+    """
+
+    def __init__(self, task: Task, scale: torch.Tensor, max_episode_steps: int,
+                 autoreset: AutoresetMode | None):
+        super().__init__()
+        self.task, self.max_episode_steps = task, max_episode_steps
+        self.autoreset = None if autoreset == AutoresetMode.DISABLED else autoreset
+        self.register_buffer("scale", scale)
+
+    def forward(self, x, t, a, ended, key, episode):
+        task = self.task
+        x1, _, r, term, invalid = task.transition(x, a, self.scale)
+        t1 = t + 1
+        trunc = (t1 >= self.max_episode_steps) | invalid
+        final = None
+        if self.autoreset == AutoresetMode.NEXT_STEP:  # an ended environment restarts; its action is ignored
+            x1, t1, episode = _restart(task, ended, x1, t1, key, episode)
+            keep = ~ended
+            r = torch.where(ended, 0.0, r)
+            term, trunc, invalid = term & keep, trunc & keep, invalid & keep
+        done = term | trunc
+        if self.autoreset == AutoresetMode.SAME_STEP:
+            final = task.observe(x1)
+            x1, t1, episode = _restart(task, done, x1, t1, key, episode)
+        flags = torch.stack([ended.any(), invalid.any(), done.any()])
+        out = (x1, t1, episode, task.observe(x1), r, term, trunc, invalid, done, flags)
+        return out if final is None else (*out, final)
+
+
+class _AotStep:
+    """A :class:`_StepCore` exported with a dynamic batch size and built by AOTInductor."""
+
+    def __init__(self, core: _StepCore):
+        import os
+        import tempfile
+
+        kw = dict(device=core.scale.device)
+        f = dict(dtype=core.scale.dtype, **kw)
+        i64 = torch.zeros(8, dtype=torch.int64, **kw)
+        ex = (torch.zeros(8, core.task.n, **f), i64, torch.zeros(8, core.task.m, **f),
+              torch.zeros(8, dtype=torch.bool, **kw), i64.clone(), i64.clone())
+        N = torch.export.Dim("num_envs", min=1)
+        with torch.no_grad(), warnings.catch_warnings(), tempfile.TemporaryDirectory() as d:
+            warnings.filterwarnings("ignore", message=".*LeafSpec.*", category=FutureWarning)  # torch's own
+            ep = torch.export.export(core, ex, dynamic_shapes=tuple({0: N} for _ in ex))
+            path = torch._inductor.aoti_compile_and_package(ep, package_path=os.path.join(d, "step.pt2"))
+            self._model = torch._inductor.aoti_load_package(path)
+        # the loader's flat entry point skips the pytree wrapper (~50 µs a call on CPU)
+        self._run = getattr(getattr(self._model, "loader", None), "run", None)
+
+    def __call__(self, *args):
+        if self._run is not None:
+            return tuple(self._run(list(args)))
+        return tuple(self._model(*args))
+
+
+# AOT-built steps of tasks given by name, shared by every env of the process (one build per key)
+_AOT_STEPS: dict[tuple, _AotStep] = {}
+
+
+def _aot_core(core: _StepCore, name: str | None) -> _AotStep:
+    """The AOT-built step of ``core``; a task given by name (no kwargs) is built once per process for its
+    dtype, device and horizon (a Task instance is built every time: its fields are not a safe key)."""
+    if name is None:
+        return _AotStep(core)
+    key = (name, core.scale.dtype, str(core.scale.device), core.max_episode_steps, core.autoreset)
+    if key not in _AOT_STEPS:
+        _AOT_STEPS[key] = _AotStep(core)
+    return _AOT_STEPS[key]
+
+
 class TaskVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` environments of a :class:`Task` stepped as one batch (module docstring).
 
@@ -67,9 +168,14 @@ class TaskVectorEnv(gym.vector.VectorEnv):
         dtype: ``torch.float32`` (default) or ``torch.float64``.
         output: ``"numpy"`` (default) or ``"torch"``.
         render_mode: ``None`` or ``"rgb_array"`` (``render()`` returns one frame per environment).
-        compile: run the pure part of the step (dynamics, reward, observation, flags) through
-            ``torch.compile`` — one fused loop instead of ~60 small kernels, several times faster for
-            large N; the first step then takes seconds to compile (CPU needs a C++ compiler).
+        compile: how the pure part of the step (dynamics, reward, observation, flags) runs — one fused
+            loop instead of ~60 small kernels.  ``False`` (default): eager PyTorch.  ``True`` or
+            ``"inductor"``: through ``torch.compile`` (the first step compiles, ~5 s; every call then
+            pays TorchDynamo's guards, ~60 µs on CPU).  ``"aot"``: exported with ``torch.export`` and
+            built by AOTInductor into a shared library at construction (~40 s on CPU, once per process
+            for a task given by name: the library is shared by every env of that task, dtype, device
+            and horizon, whatever ``num_envs``), then called with ~10 µs of overhead: the fastest at
+            every N.  Both compiled modes need a C++ compiler on CPU.
     """
 
     def __init__(self, task: Task | str | type = "PendulumSwingUp", num_envs: int = 1, *,
@@ -114,7 +220,21 @@ class TaskVectorEnv(gym.vector.VectorEnv):
         self._ended = torch.zeros(num_envs, dtype=torch.bool, **kw)
         self._has_key = torch.zeros(num_envs, dtype=torch.bool, **kw)
         self._started = False
-        self._core = torch.compile(self._advance, dynamic=False) if compile else self._advance
+        self.compile = _as_compile_mode(compile)
+        # the step without resets, and (unless autoreset is disabled) the step with this mode's resets,
+        # run only when one is due: drawing every environment's next initial state costs more than the step
+        name = task if isinstance(task, str) and not task_kwargs else None
+        self._core = self._build(_StepCore(self.task, self._scale, steps, None), name)
+        self._core_reset = None if autoreset_mode_ == AutoresetMode.DISABLED else \
+            self._build(_StepCore(self.task, self._scale, steps, autoreset_mode_), name)
+        self._pending = False  # an episode ended at the last step (NEXT_STEP resets it at this one)
+
+    def _build(self, core: _StepCore, name: str | None):
+        if self.compile == "aot":
+            return _aot_core(core, name)
+        if self.compile == "inductor":
+            return torch.compile(core, dynamic=False)
+        return core
 
     # ------------------------------------------------------------------------------------------ state
     @property
@@ -129,10 +249,8 @@ class TaskVectorEnv(gym.vector.VectorEnv):
 
     def _initial(self, which: torch.Tensor) -> None:
         """Start a new episode (the next one of each key) where ``which``; the others are untouched."""
-        self._episode = torch.where(which, self._episode + 1, self._episode)
-        x0 = self.task.initial_state(uniforms(self._key, self._episode, self.task.n_noise, self.dtype))
-        self._x = torch.where(which[:, None], x0, self._x)
-        self._t = torch.where(which, 0, self._t)
+        self._x, self._t, self._episode = _restart(self.task, which, self._x, self._t,
+                                                   self._key, self._episode)
         self._ended = self._ended & ~which
 
     def _out(self, v: torch.Tensor):
@@ -188,6 +306,7 @@ class TaskVectorEnv(gym.vector.VectorEnv):
             self._has_key |= fresh
         self._initial(which)
         self._started = True
+        self._pending = bool(self._ended.any())  # environments a partial reset left ended
         return self._out(self.task.observe(self._x)), {}
 
     @torch.no_grad()
@@ -198,53 +317,29 @@ class TaskVectorEnv(gym.vector.VectorEnv):
         if a.shape != (self.num_envs, self.task.m):
             raise ValueError(f"TaskVectorEnv.step: actions must have shape ({self.num_envs}, {self.task.m}), "
                              f"got {tuple(a.shape)}")
-        if a.is_floating_point() and a.dtype != self.dtype:
-            a = torch.where(torch.isfinite(a), a.clamp(-2.0, 2.0), a)  # a cast to float32 cannot make an inf
-        a = a.to(device=self.device, dtype=self.dtype)
+        if a.dtype != self.dtype or a.device != self.device:
+            if a.is_floating_point() and a.dtype != self.dtype:  # a cast to float32 cannot make an inf
+                a = torch.where(torch.isfinite(a), a.clamp(-2.0, 2.0), a)
+            a = a.to(device=self.device, dtype=self.dtype)
         mode = self.autoreset_mode
-        if mode == AutoresetMode.DISABLED and bool(self._ended.any()):
+        args = (self._x, self._t, a, self._ended, self._key, self._episode)
+        core = self._core_reset if mode == AutoresetMode.NEXT_STEP and self._pending else self._core
+        x1, t1, episode, obs, r, term, trunc, invalid, ended, flags, *final = core(*args)
+        any_ended_before, any_bad, any_ended = flags.tolist()  # the step's one host synchronization
+        if mode == AutoresetMode.DISABLED and any_ended_before:
             idx = torch.nonzero(self._ended).flatten().tolist()
             raise RuntimeError(f"TaskVectorEnv.step: environments {idx[:10]}{'...' if len(idx) > 10 else ''} "
                                "ended and autoreset is disabled; reset them with "
                                "reset(options={'reset_mask': mask})")
-        x1, t1, obs, r, term, trunc, invalid = self._core(self._x, self._t, a)
-        self._x, self._t = x1, t1
-        infos: dict[str, Any] = {}
-        if mode == AutoresetMode.NEXT_STEP:
-            ar = self._ended
-            any_ar = any_bad = bool((ar | invalid).any())  # one host sync when nothing happened
-            if any_ar:
-                any_ar, any_bad = bool(ar.any()), bool(invalid.any())
-            if any_ar:
-                self._initial(ar)
-                keep = ~ar
-                r = torch.where(ar, 0.0, r)
-                term, trunc, invalid = term & keep, trunc & keep, invalid & keep
-                any_bad = bool(invalid.any())
-                obs = self.task.observe(self._x)
-            if any_bad:
-                infos = {"invalid": self._out(invalid), "_invalid": self._out(invalid.clone())}
-        else:
-            bad = {"invalid": self._out(invalid), "_invalid": self._out(invalid.clone())} \
-                if bool(invalid.any()) else {}
-            if mode == AutoresetMode.SAME_STEP:
-                ended = term | trunc
-                if bool(ended.any()):  # an invalid step is truncated, so its flags are in final_info
-                    infos = {"final_obs": self._out(obs), "_final_obs": self._out(ended),
-                             "final_info": bad, "_final_info": self._out(ended.clone())}
-                    self._initial(ended)
-                    obs = self.task.observe(self._x)
-            else:
-                infos = bad
-        self._ended = term | trunc
+        if mode == AutoresetMode.SAME_STEP and any_ended:  # the same step again, with the resets
+            x1, t1, episode, obs, r, term, trunc, invalid, ended, flags, *final = self._core_reset(*args)
+        self._x, self._t, self._episode, self._ended, self._pending = x1, t1, episode, ended, any_ended
+        bad = {"invalid": self._out(invalid), "_invalid": self._out(invalid.clone())} if any_bad else {}
+        infos: dict[str, Any] = bad
+        if final:  # an invalid step is truncated: its flags are in final_info
+            infos = {"final_obs": self._out(final[0]), "_final_obs": self._out(ended.clone()),
+                     "final_info": bad, "_final_info": self._out(ended.clone())}
         return self._out(obs), self._out(r), self._out(term), self._out(trunc), infos
-
-    def _advance(self, x: torch.Tensor, t: torch.Tensor, a: torch.Tensor):
-        """The pure part of a step (no host synchronization, no autoreset; compiled with
-        ``compile=True``): ``(x_next, t_next, obs, reward, terminated, truncated, invalid)``."""
-        x1, _, r, term, invalid = self.task.transition(x, a, self._scale)
-        t1 = t + 1
-        return x1, t1, self.task.observe(x1), r, term, (t1 >= self.max_episode_steps) | invalid, invalid
 
     def render(self):
         if self.render_mode != "rgb_array":

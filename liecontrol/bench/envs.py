@@ -2,15 +2,16 @@
 ``SyncVectorEnv`` and EnvPool (C++), in one run.
 
 Our pendulum swing-up (Pendulum-v1's physics and reward, :mod:`learning.envs.pendulum`) and continuous
-cart-pole swing-up are stepped as :class:`learning.vector.TaskVectorEnv` in tensor mode (actions and
-outputs stay torch tensors on the device) and numpy mode (numpy in and out, what SB3 and stock wrappers
-see), on CPU and, when present, CUDA; ``ours-compiled`` is the same env built with ``compile=True``
-(the pure part of the step through ``torch.compile``).  The anchors step their closest tasks:
-gymnasium's ``Pendulum-v1`` and ``CartPole-v1`` (discrete balancing: the same physics family, a
+cart-pole swing-up are stepped as :class:`learning.vector.TaskVectorEnv` in tensor mode (actions and outputs
+stay torch tensors on the device) and numpy mode (numpy in and out, what SB3 and stock wrappers see), on CPU
+and, when present, CUDA; ``ours-compiled`` is the same env built with ``compile=True`` (the pure part of the
+step through ``torch.compile``) and ``ours-aot`` with ``compile="aot"`` (exported and built by AOTInductor
+once per task: ~40 s before the first row, then ~10 µs of call overhead). The anchors step their closest
+tasks: gymnasium's ``Pendulum-v1`` and ``CartPole-v1`` (discrete balancing: the same physics family, a
 different task) through ``gymnasium.vector.SyncVectorEnv``, and EnvPool's C++ ``Pendulum-v1`` and
-``CartPole-v1`` (numpy in and out, its default thread pool).  Every measurement steps with random
-actions for ``--seconds`` after warm-up, the median of ``--repeats`` samples is kept, and records carry
-the ratio to each anchor at the same number of environments.  Autoreset is on everywhere.
+``CartPole-v1`` (numpy in and out, its default thread pool). Every measurement steps with random actions for
+``--seconds`` after warm-up, the median of ``--repeats`` samples is kept, and records carry the ratio to
+each anchor at the same number of environments. Autoreset is on everywhere.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch intra-op threads of our env (default 1: robust on a shared machine; "
                              "EnvPool keeps its own pool of one thread per core)")
     parser.add_argument("--no-compile", action="store_true",
-                        help="skip the ours-compiled rows (TaskVectorEnv(compile=True))")
+                        help="skip the ours-compiled and ours-aot rows (TaskVectorEnv(compile=True / 'aot'))")
     parser.add_argument("--json", default=None, metavar="PATH", help="write the records as JSON")
 
 
@@ -70,10 +71,10 @@ def _rate(step, N: int, seconds: float, repeats: int, device=None, warmup: int =
     return statistics.median(rates)
 
 
-def _ours(task: str, N: int, mode: str, device: str, seconds: float, repeats: int, compiled: bool) -> float:
+def _ours(task: str, N: int, mode: str, device: str, seconds: float, repeats: int, compiled) -> float:
     from learning import TaskVectorEnv
 
-    if compiled:  # every env compiles the same step code: start from an empty cache (recompile limit)
+    if compiled is True:  # every env compiles the same step code: start from an empty cache (recompile limit)
         torch._dynamo.reset()
     env = TaskVectorEnv(task, N, device=device, output=mode, compile=compiled)
     env.reset(seed=0)
@@ -153,8 +154,8 @@ def measure(envs=tuple(ENVS), num_envs=(1, 16, 64, 256, 1024, 4096), impls=IMPLS
         if "ours" not in impls:
             continue
         for device in devices:
-            for comp in (False, True) if compiled else (False,):
-                impl = "ours-compiled" if comp else "ours"
+            for comp in (False, True, "aot") if compiled else (False,):
+                impl = {False: "ours", True: "ours-compiled", "aot": "ours-aot"}[comp]
                 for mode in modes:
                     for N in num_envs:
                         sps = _ours(task, N, mode, device, seconds, repeats, comp)
@@ -171,7 +172,8 @@ def run(args: argparse.Namespace) -> int:
                       devices=args.device, seconds=args.seconds, repeats=args.repeats,
                       max_sync_envs=args.max_sync_envs, threads=args.threads, compiled=not args.no_compile,
                       log=lambda s: None)
-    print(f"env steps per second, torch {torch.__version__}, {torch.get_num_threads()} threads; "
+    threads = args.threads if args.threads > 0 else torch.get_num_threads()  # measure() restores torch's
+    print(f"env steps per second, torch {torch.__version__}, {threads} thread(s) of ours; "
           "vs_* = ours / anchor at the same number of envs (same run)")
     print_table(records, COLUMNS)
     if args.json:

@@ -257,3 +257,74 @@ def test_same_step_invalid_flags_are_in_final_info_like_sync_vector_env():
     o, r, te, tr, info = env.step(np.array([[np.nan], [0.0]]))
     assert "invalid" not in info and info["final_info"]["invalid"].tolist() == [True, False]
     assert info["_final_obs"].tolist() == [True, False]
+
+
+def _lockstep(envs: dict, steps: int, seed: int, nan_at: int):
+    """Step every env with the same actions (a NaN in env 2 at ``nan_at``, bang-bang pushes that end
+    cart-pole episodes early) and assert identical outputs and info keys; returns the number of ended
+    episodes seen."""
+    ref_name, ref = next(iter(envs.items()))
+    for e in envs.values():
+        e.reset(seed=seed)
+    g = torch.Generator().manual_seed(seed)
+    N, ended = ref.num_envs, 0
+    for k in range(steps):
+        a = torch.rand(N, ref.task.m, generator=g, dtype=torch.float64) * 3 - 1.5
+        a[:, 0] += torch.where(torch.arange(N) % 2 == 0, 1.0, -1.0) * ((k // 20) % 2 * 2 - 1)
+        if k == nan_at and N > 2:
+            a[2] = float("nan")
+        outs = {name: e.step(a) for name, e in envs.items()}
+        o0 = outs[ref_name]
+        for name, o in outs.items():
+            for u, v in zip(o0[:4], o[:4]):
+                torch.testing.assert_close(v, u, rtol=0, atol=1e-12, msg=lambda m, w=(name, k): f"{w}: {m}")
+            assert o[4].keys() == o0[4].keys(), (name, k, o[4].keys(), o0[4].keys())
+            for key, val in o0[4].items():
+                if isinstance(val, torch.Tensor):
+                    torch.testing.assert_close(o[4][key], val, rtol=0, atol=1e-12)
+        ended += int((o0[2] | o0[3]).sum())
+    return ended
+
+
+def test_aot_env_passes_conformance_and_equals_eager_at_any_batch_size():
+    """compile="aot" builds one library per (task, dtype, device, horizon, reset variant) with a dynamic
+    batch size: the conformance suite (every autoreset mode, against SyncVectorEnv over the single env)
+    and a lock-step comparison with the eager env at N = 1 and 7, NaN action and autoresets included."""
+    name = "PendulumSwingUp"
+    make = lambda mode: TaskVectorEnv(name, 5, max_episode_steps=13, autoreset_mode=mode, dtype=torch.float64,
+                                      output="torch", compile="aot")
+    single = lambda: gym.make(learning.env_id(name), max_episode_steps=13, dtype=torch.float64)
+    check_vector_env(make, single, tol=1e-12)
+    for mode in (AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP):
+        for N in (1, 7):
+            envs = {c: TaskVectorEnv(name, N, max_episode_steps=13, autoreset_mode=mode, dtype=torch.float64,
+                                     output="torch", compile=c) for c in (False, "aot")}
+            assert _lockstep(envs, 40, seed=N, nan_at=5) >= 2 * N  # T = 13: two ends in 40 steps
+
+
+@pytest.mark.parametrize("mode", [AutoresetMode.NEXT_STEP, AutoresetMode.SAME_STEP])
+def test_torch_compiled_env_equals_eager_through_terminations(mode):
+    name = "CartPoleSwingUp"
+    envs = {c: TaskVectorEnv(name, 6, max_episode_steps=60, autoreset_mode=mode, dtype=torch.float64,
+                             output="torch", compile=c) for c in (False, True)}
+    assert _lockstep(envs, 150, seed=2, nan_at=30) >= 12
+    assert any(envs[False].elapsed_steps < 59)  # episodes ended by termination, not only the time limit
+
+
+def test_partial_reset_in_next_step_mode_restarts_only_the_masked_ones():
+    """A reset_mask that leaves an ended environment ended: the next step still restarts it."""
+    env = TaskVectorEnv("PendulumSwingUp", 3, max_episode_steps=2, dtype=torch.float64, output="torch")
+    env.reset(seed=0)
+    a = torch.zeros(3, 1, dtype=torch.float64)
+    env.step(a)
+    _, _, _, trunc, _ = env.step(a)
+    assert trunc.all()
+    o, _ = env.reset(options={"reset_mask": np.array([True, False, False])})
+    assert env.elapsed_steps.tolist() == [0, 2, 2]
+    o, r, te, tr, _ = env.step(a)  # envs 1 and 2 restart here (reward 0), env 0 steps
+    assert env.elapsed_steps.tolist() == [1, 0, 0] and r[1:].tolist() == [0.0, 0.0] and r[0] != 0
+
+
+def test_bad_compile_argument_is_refused():
+    with pytest.raises(ValueError, match="compile"):
+        TaskVectorEnv("PendulumSwingUp", 2, compile="fast")
