@@ -26,9 +26,12 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import multiprocessing
+import os
 import platform
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -105,6 +108,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-mpc", action="store_true", help="skip the MPC expert")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch intra-op threads (default 1: robust on a shared machine)")
+    parser.add_argument("--jobs", type=int, default=None,
+                        help="agents trained at once in worker processes (default: one per CPU core; "
+                             "1: in this process); results do not depend on it")
     parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
 
 
@@ -141,14 +147,35 @@ def _find_saved(load: Path, task: str, algo: str, seed: int) -> Path:
 
 
 
+def _train_and_evaluate(algo: str, task, budget: int, seed: int, every: int, E: int, out_dir: str,
+                        train_envs: int | None, ev_seeds: list[int], N: int, threads: int, log=None):
+    """Train one agent and evaluate it on the held-out episodes (the unit of work of a ``--jobs`` worker
+    process, or of the command itself with one job).  Returns ``(eval result, curve, train_time_s,
+    num_timesteps, params, notes)``."""
+    from learning import baselines as bl
+    from learning.evaluate import evaluate
+
+    if threads and threads > 0:
+        torch.set_num_threads(threads)
+    res = bl.train(algo, task, budget, seed, eval_every=every, eval_episodes=E, out_dir=out_dir,
+                   num_envs=train_envs, log=log)
+    r = evaluate(res.model, task, seeds=ev_seeds, num_envs=N, dtype=torch.float32, progress=False)
+    return r, res.curve(), res.train_time_s, res.num_timesteps, res.params, list(res.notes)
+
+
 @restores_threads
 def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | None = None,
             seeds=(0, 1, 2), eval_episodes: int | None = None, eval_every: int | None = None,
             num_envs: int | None = None, train_envs: int | None = None, out: str | Path = "out/compare",
             load: str | Path | None = None, mpc: bool = True, mpc_horizon: int | None = None,
-            threads: int = 1, log=None) -> dict:
+            threads: int = 1, jobs: int | None = None, log=None) -> dict:
     """Run the comparison (module docstring) and write its files; returns the JSON record, with the
-    extra key ``"_files"`` (the paths written) and ``"_wall_time_s"``."""
+    extra key ``"_files"`` (the paths written) and ``"_wall_time_s"``.
+
+    ``jobs``: agents trained (and evaluated) at once in worker processes (default: one per CPU core, at
+    most one per agent; 1 trains in this process).  The MPC is evaluated here meanwhile.  Every agent
+    is trained from its own seed with ``threads`` intra-op threads, so the results do not depend on
+    ``jobs``."""
     from learning import baselines as bl
     from learning.envs.single import make_task
     from learning.evaluate import evaluate, jsonable
@@ -175,65 +202,88 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
     record: dict = {"env": task.name, "mpc": None}
     notes: list[str] = []
 
-    mpc_res = None
-    if mpc:
-        expert = task_expert(task, horizon=mpc_horizon)
-        say(f"{task.name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
-        mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=False)
-        record["mpc"] = _metrics(mpc_res.summary()) | {"horizon": expert.horizon, "eval_seeds": ev_seeds}
-        say(f"{task.name}: MPC success {mpc_res.success.mean():.3f}, return {mpc_res.returns.mean():.1f}")
-    mpc_success = float(mpc_res.success.mean()) if mpc_res is not None else math.nan
-    mpc_return = float(mpc_res.returns.mean()) if mpc_res is not None else math.nan
+    if jobs is not None and (not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1):
+        raise ValueError(f"argument --jobs: must be a positive int, got {jobs!r}")
+    work = [(a, s) for a in algos for s in seeds] if load is None else []
+    jobs = min(jobs or os.cpu_count() or 1, max(len(work), 1))
+    pool, futures = None, {}
+    if jobs > 1:  # spawn: a fresh interpreter per worker (no forked torch thread pools)
+        pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"))
+        for a, s in work:
+            every = eval_every or max(1, budgets[a] // 20)
+            futures[(a, s)] = pool.submit(_train_and_evaluate, a, task, budgets[a], s, every, E,
+                                          str(root / "agents" / a / f"seed{s}"), train_envs, ev_seeds, N,
+                                          threads)
+        say(f"{task.name}: training {len(work)} agents in {jobs} worker processes")
 
-    evals: dict[str, list] = {}
-    for algo in algos:
-        per_seed, results, curves = [], [], []
-        for s in seeds:
-            if load is not None:
-                pt = _find_saved(Path(load), task.name, algo, s)
-                meta = bl.read_agent_meta(pt)
-                model = bl.load_agent(pt, algo, task)
-                curve, train_time, steps, params = (meta["curve"], meta.get("train_time_s"),
-                                                    meta.get("num_timesteps"), meta["params"])
-                if meta.get("eval_episodes") not in (None, E):
-                    notes.append(f"{algo} seed {s}: its saved curve was evaluated on {meta['eval_episodes']} "
-                                 f"episodes, the final evaluation on {E}")
-                say(f"{task.name} {algo} seed {s}: loaded {pt} (no training)")
-                loaded = True
-            else:
-                every = eval_every or max(1, budgets[algo] // 20)
-                res = bl.train(algo, task, budgets[algo], s, eval_every=every, eval_episodes=E,
-                            out_dir=root / "agents" / algo / f"seed{s}", num_envs=train_envs, log=say)
-                model, curve, train_time, steps, params = (res.model, res.curve(), res.train_time_s,
-                                                           res.num_timesteps, res.params)
-                notes.extend(n for n in res.notes if n not in notes)
-                loaded = False
-            r = evaluate(model, task, seeds=ev_seeds, num_envs=N, dtype=torch.float32, progress=False)
-            results.append(r)
-            curves.append(curve)
-            per_seed.append({"seed": s, "success_rate": float(r.success.mean()),
-                             "return_mean": float(r.returns.mean()), "return_std": float(r.returns.std()),
-                             "final_error_mean": float(np.nanmean(r.final_error)),
-                             "train_time_s": train_time, "num_timesteps": steps, "loaded": loaded,
-                             "steps_to_match": {
-                                 "success": bl.steps_to_match(curve["steps"], curve["success"], mpc_success),
-                                 "return": bl.steps_to_match(curve["steps"], curve["returns"], mpc_return)}})
-            say(f"{task.name} {algo} seed {s}: success {per_seed[-1]['success_rate']:.3f}, "
-                f"return {per_seed[-1]['return_mean']:.1f}")
-        pooled = _pooled(results)
-        st, rmean, rmin, rmax = bl.mean_curve(curves, "returns")
-        _, smean, smin, smax = bl.mean_curve(curves, "success")
-        times = [p["train_time_s"] for p in per_seed if p["train_time_s"] is not None]
-        record[algo] = _metrics(pooled.summary()) | {
-            "eval_seeds": ev_seeds, "per_seed": per_seed,
-            "steps_to_match": {"success": bl.steps_to_match(st, smean, mpc_success),
-                               "return": bl.steps_to_match(st, rmean, mpc_return)},
-            "curve": {"steps": st, "return_mean": rmean, "return_min": rmin, "return_max": rmax,
-                      "success_mean": smean, "success_min": smin, "success_max": smax},
-            "train_time_s": {"mean": float(np.mean(times)) if times else None, "total": float(sum(times))},
-            "num_timesteps": max(int(p["num_timesteps"] or 0) for p in per_seed),
-            "loaded": all(p["loaded"] for p in per_seed), "params": params}
-        evals[algo] = results
+    try:
+        mpc_res = None
+        if mpc:
+            expert = task_expert(task, horizon=mpc_horizon)
+            say(f"{task.name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
+            mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=False)
+            record["mpc"] = _metrics(mpc_res.summary()) | {"horizon": expert.horizon, "eval_seeds": ev_seeds}
+            say(f"{task.name}: MPC success {mpc_res.success.mean():.3f}, return {mpc_res.returns.mean():.1f}")
+        mpc_success = float(mpc_res.success.mean()) if mpc_res is not None else math.nan
+        mpc_return = float(mpc_res.returns.mean()) if mpc_res is not None else math.nan
+
+        evals: dict[str, list] = {}
+        for algo in algos:
+            per_seed, results, curves = [], [], []
+            for s in seeds:
+                if load is not None:
+                    pt = _find_saved(Path(load), task.name, algo, s)
+                    meta = bl.read_agent_meta(pt)
+                    model = bl.load_agent(pt, algo, task)
+                    curve, train_time, steps, params = (meta["curve"], meta.get("train_time_s"),
+                                                        meta.get("num_timesteps"), meta["params"])
+                    if meta.get("eval_episodes") not in (None, E):
+                        notes.append(f"{algo} seed {s}: its saved curve was evaluated on "
+                                     f"{meta['eval_episodes']} episodes, the final evaluation on {E}")
+                    say(f"{task.name} {algo} seed {s}: loaded {pt} (no training)")
+                    loaded = True
+                    r = evaluate(model, task, seeds=ev_seeds, num_envs=N, dtype=torch.float32, progress=False)
+                else:
+                    if pool is not None:
+                        r, curve, train_time, steps, params, new_notes = futures[(algo, s)].result()
+                    else:
+                        every = eval_every or max(1, budgets[algo] // 20)
+                        r, curve, train_time, steps, params, new_notes = _train_and_evaluate(
+                            algo, task, budgets[algo], s, every, E, str(root / "agents" / algo / f"seed{s}"),
+                            train_envs, ev_seeds, N, threads, log=say)
+                    notes.extend(n for n in new_notes if n not in notes)
+                    loaded = False
+                results.append(r)
+                curves.append(curve)
+                per_seed.append({"seed": s, "success_rate": float(r.success.mean()),
+                                 "return_mean": float(r.returns.mean()), "return_std": float(r.returns.std()),
+                                 "final_error_mean": float(np.nanmean(r.final_error)),
+                                 "train_time_s": train_time, "num_timesteps": steps, "loaded": loaded,
+                                 "steps_to_match": {
+                                     "success": bl.steps_to_match(curve["steps"], curve["success"],
+                                                                  mpc_success),
+                                     "return": bl.steps_to_match(curve["steps"], curve["returns"],
+                                                                 mpc_return)}})
+                say(f"{task.name} {algo} seed {s}: success {per_seed[-1]['success_rate']:.3f}, "
+                    f"return {per_seed[-1]['return_mean']:.1f}")
+            pooled = _pooled(results)
+            st, rmean, rmin, rmax = bl.mean_curve(curves, "returns")
+            _, smean, smin, smax = bl.mean_curve(curves, "success")
+            times = [p["train_time_s"] for p in per_seed if p["train_time_s"] is not None]
+            record[algo] = _metrics(pooled.summary()) | {
+                "eval_seeds": ev_seeds, "per_seed": per_seed,
+                "steps_to_match": {"success": bl.steps_to_match(st, smean, mpc_success),
+                                   "return": bl.steps_to_match(st, rmean, mpc_return)},
+                "curve": {"steps": st, "return_mean": rmean, "return_min": rmin, "return_max": rmax,
+                          "success_mean": smean, "success_min": smin, "success_max": smax},
+                "train_time_s": {"mean": float(np.mean(times)) if times else None,
+                                 "total": float(sum(times))},
+                "num_timesteps": max(int(p["num_timesteps"] or 0) for p in per_seed),
+                "loaded": all(p["loaded"] for p in per_seed), "params": params}
+            evals[algo] = results
+    finally:
+        if pool is not None:
+            pool.shutdown(cancel_futures=True)
     record["budget_steps"] = budgets
     record["seeds"] = seeds
     record = jsonable(record)
@@ -246,7 +296,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
              "curves": str(root / "curves.png")}
     _plot(record, algos, files["curves"])
     Path(files["json"]).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
-    Path(files["report"]).write_text(_report(record, algos, task, E, N, notes, wall, threads))
+    Path(files["report"]).write_text(_report(record, algos, task, E, N, notes, wall, threads, jobs))
     return record | {"_files": files, "_wall_time_s": wall}
 
 
@@ -261,7 +311,7 @@ def _match_text(s: int | None, budget: int) -> str:
 
 
 def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str], wall: float,
-            threads: int) -> str:
+            threads: int, jobs: int = 1) -> str:
     from learning.baselines import EVAL_SEED0
 
     mpc = rec.get("mpc")
@@ -276,7 +326,8 @@ def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str],
          f"- RL: stable-baselines3 {_sb3_version()} ({', '.join(a.upper() for a in algos)}), training seeds "
          f"{rec['seeds']}, budget per seed {rec['budget_steps']} environment steps",
          f"- machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
-         f"{threads} intra-op thread(s); command wall time {wall:.0f} s", ""]
+         f"{threads} intra-op thread(s) per process, {jobs} training process(es); command wall time "
+         f"{wall:.0f} s", ""]
     for a in algos:
         L.append(f"- {a.upper()} hyperparameters: `{json.dumps(rec[a]['params'])}`")
     L += ["", "Model files: `agents/ALGO/seedS/model.zip` is SB3's format — **SB3 unpickles parts of a "
@@ -409,7 +460,7 @@ def run(args: argparse.Namespace) -> int:
         rec = compare(args.env, algos=args.algos, budget_steps=budgets, seeds=args.seeds,
                       eval_episodes=args.eval_episodes, eval_every=args.eval_every, num_envs=args.num_envs,
                       train_envs=args.train_envs, out=args.out, load=args.load, mpc=not args.no_mpc,
-                      mpc_horizon=args.mpc_horizon, threads=args.threads, log=log)
+                      mpc_horizon=args.mpc_horizon, threads=args.threads, jobs=args.jobs, log=log)
     except (FileNotFoundError, ValueError) as e:
         print(f"liecontrol compare: error: {e}", file=sys.stderr)
         return 2

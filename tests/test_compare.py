@@ -2,6 +2,7 @@
 the "steps to match the MPC" logic and argument errors."""
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -145,3 +146,27 @@ def test_defaults_and_budget_parsing():
     assert parse_budgets(["1000", "sac=50"], ["ppo", "sac"], TASK) == {"ppo": 1000, "sac": 50}
     with pytest.raises(ValueError, match="budget"):
         parse_budgets(["0"], ["ppo"], TASK)
+
+
+def test_agents_trained_in_worker_processes_equal_those_trained_in_process(trained, tmp_path):
+    """The fixture trained its six agents in worker processes (--jobs default: one per core); training
+    PPO seeds 0 and 1 again in this process (--jobs 1) gives the same curves and evaluations."""
+    if (os.cpu_count() or 1) < 2:
+        pytest.skip("one CPU core: the fixture trained in process too, nothing to compare")
+    args = ["compare", TASK, "--algos", "ppo", "--seeds", "0", "1", "--out", str(tmp_path), "--no-mpc",
+            "--jobs", "1", "--json", str(tmp_path / "r.json"), *TINY]
+    assert cli.main(args) == 0
+    one = json.loads((tmp_path / "r.json").read_text())["ppo"]["per_seed"]
+    many = json.loads((trained / "record.json").read_text())["ppo"]["per_seed"][:2]
+    for a, b in zip(one, many):
+        assert a["seed"] == b["seed"] and a["num_timesteps"] == b["num_timesteps"]
+        assert a["return_mean"] == b["return_mean"] and a["success_rate"] == b["success_rate"]
+    assert "1 training process" in (tmp_path / TASK / "report.md").read_text()
+    jobs = min(os.cpu_count(), 6)  # six agents in the fixture
+    assert f"{jobs} training process" in (trained / TASK / "report.md").read_text()
+
+
+def test_bad_jobs_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="--jobs"):
+        from liecontrol.compare import compare
+        compare(TASK, jobs=0, out=tmp_path, mpc=False)
