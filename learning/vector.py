@@ -321,6 +321,7 @@ class TaskVectorEnv(gym.vector.VectorEnv):
             if a.is_floating_point() and a.dtype != self.dtype:  # a cast to float32 cannot make an inf
                 a = torch.where(torch.isfinite(a), a.clamp(-2.0, 2.0), a)
             a = a.to(device=self.device, dtype=self.dtype)
+        a = a.contiguous()  # the AOT build reads its inputs as dense rows (a strided view would be misread)
         mode = self.autoreset_mode
         args = (self._x, self._t, a, self._ended, self._key, self._episode)
         core = self._core_reset if mode == AutoresetMode.NEXT_STEP and self._pending else self._core
