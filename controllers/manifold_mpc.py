@@ -61,6 +61,8 @@ did not certify its point.  A state off the manifold is a ``ValueError`` naming 
 
 from __future__ import annotations
 
+import inspect
+import math
 import time
 from dataclasses import dataclass
 from typing import Any, Protocol, runtime_checkable
@@ -68,7 +70,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from controllers._validate import all_finite, enum_arg
+from controllers._validate import all_finite, broadcast_batch, check_symmetric, enum_arg, psd_mask
 from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
@@ -365,6 +367,74 @@ def _weight(W, size: int, name: str, fn: str) -> Tensor:
                      f"got {tuple(W.shape)}")
 
 
+def _checked_weight(W, size: int, name: str, fn: str, strict: bool) -> Tensor:
+    """:func:`_weight`, validated by the rule of :mod:`controllers.costs`: a non-symmetric weight is always a
+    ``ValueError``; a weight shared by the batch (no batch dims) must be finite and positive
+    (semi-)definite (``strict``: definite), else ``ValueError``; batched weights are checked per element at
+    solve time (:func:`_weight_reason`)."""
+    W = _weight(W, size, name, fn)
+    check_symmetric(W, name, fn)
+    if W.dim() == 2:
+        if not bool(all_finite(W, 2)):
+            raise ValueError(f"{fn}: argument '{name}' must be finite, got a NaN/inf entry")
+        if not bool(psd_mask(W, strict=strict)):
+            kind = "positive definite" if strict else "positive semi-definite"
+            raise ValueError(f"{fn}: argument '{name}' must be symmetric {kind}, got eigenvalues "
+                             f"{torch.linalg.eigvalsh(W.detach()).tolist()}")
+    return W
+
+
+def _weight_reason(W: Tensor, strict: bool) -> tuple[Tensor, Tensor]:
+    """A batched weight ``(*Bw, k, k)`` with its failing elements replaced by the identity, and the
+    ``(*Bw,)`` :class:`Reason` codes (``NONFINITE_INPUT``, ``NOT_POSITIVE_DEFINITE`` or 0)."""
+    fin = all_finite(W, 2)
+    good = fin & psd_mask(W, strict=strict)
+    reason = torch.where(fin, torch.where(good, 0, int(Reason.NOT_POSITIVE_DEFINITE)),
+                         int(Reason.NONFINITE_INPUT))
+    eye = torch.eye(W.shape[-1], dtype=W.dtype, device=W.device)
+    return torch.where(good[..., None, None], W, eye), reason
+
+
+def first_failure(*reasons: Tensor) -> Tensor:
+    """Merge per-element :class:`Reason` codes: each element keeps the first failure (non-zero code) in
+    the order given, so that no later stage overwrites an earlier failure."""
+    out = reasons[0]
+    for r in reasons[1:]:
+        out = torch.where(out != 0, out, r)
+    return out
+
+
+#: the keyword arguments of :func:`box_qp` that ``qp_options`` may set (``check`` is the MPC's own business)
+_QP_KEYS = tuple(k for k, v in inspect.signature(box_qp).parameters.items()
+                 if v.kind is inspect.Parameter.KEYWORD_ONLY and k != "check")
+
+#: dtypes whose condensed QP is built and solved in float64 (cond(H) of a horizon of 40 exceeds 1/eps)
+_REFINE_DTYPES = (torch.float16, torch.bfloat16, torch.float32)
+
+
+def _limit(b, name: str, fn: str, N: int, m: int, own: bool):
+    """A limit argument as ``None``, a float or a tensor broadcastable to ``(*B, N, m)`` (``own``: a limit of
+    the system, a sequence or tensor cast to the data's dtype at solve time)."""
+    if b is None:
+        return None
+    if own and not isinstance(b, Tensor) and not isinstance(b, (int, float)):
+        b = torch.as_tensor(b, dtype=torch.float64)
+    if isinstance(b, bool) or not isinstance(b, (int, float, Tensor)):
+        raise TypeError(f"{fn}: argument '{name}' must be None, a float or a tensor broadcastable to "
+                        f"(*B, {N}, {m}), got {type(b).__name__}")
+    if not isinstance(b, Tensor):
+        if math.isnan(b):
+            raise ValueError(f"{fn}: argument '{name}' is NaN (use ±inf or None for no limit)")
+        return float(b)
+    if not b.dtype.is_floating_point:
+        raise TypeError(f"{fn}: argument '{name}' must have a floating dtype, got {b.dtype}")
+    sh = tuple(b.shape)
+    if (len(sh) >= 1 and sh[-1] not in (1, m)) or (len(sh) >= 2 and sh[-2] not in (1, N)):
+        raise ValueError(f"{fn}: argument '{name}' must broadcast to (*B, N, m) = (*B, {N}, {m}) "
+                         f"(e.g. ({m},), ({N}, {m}) or (B, 1, {m})), got {sh}")
+    return b
+
+
 class ErrorStateMPC:
     """Algorithm 1 of seed 003 (module docstring) for a batch of systems.
 
@@ -372,14 +442,27 @@ class ErrorStateMPC:
         system: a :class:`ManifoldSystem`.
         horizon: N.
         Q, R: stage weights, ``(n,)``/``(m,)`` diagonals or ``(*B, n, n)``/``(*B, m, m)`` matrices (Q PSD,
-            R PD); P: terminal weight (default Q).
+            R PD); P: terminal weight (default Q).  Checked as :mod:`controllers.costs` checks a
+            :class:`~controllers.costs.QuadraticCost`: a non-symmetric weight is a ``ValueError``; a weight
+            without batch dims that is not finite and PSD (Q, P) / PD (R) is a ``ValueError`` naming it; a
+            batched weight's failing elements get the status ``NONFINITE_INPUT``/``NOT_POSITIVE_DEFINITE``
+            (NaN outputs), the others are solved as if alone.
         u_lower, u_upper: limits broadcastable to ``(*B, N, m)`` (default the system's ``u_lower``/
-            ``u_upper`` when it has them, else none); ``None`` or ±inf for no limit.
+            ``u_upper`` when it has them, else none); ``None`` or ±inf for no limit.  A float limit that
+            is NaN, or float limits with ``u_lower > u_upper``, are a ``ValueError``; tensor limits are
+            checked per element at solve time (as :func:`~controllers.ilqr.ilqr` does, no host sync): a
+            NaN entry makes that element ``NONFINITE_INPUT``, ``u_lower > u_upper`` anywhere makes it
+            ``INFEASIBLE_BOUNDS`` (NaN outputs either way).
         solver: ``"auto"``, ``"qp"`` (condensed, Eq. 28/31) or ``"riccati"`` (no limits only).
         grad: :class:`~controllers.problem.GradMode` (``"implicit"``, ``"none"``; ``"unrolled"`` is
             accepted by the Riccati path and treated as implicit by the QP path).
         jacobians: ``"auto"``, ``"analytic"`` or ``"autograd"`` (:func:`system_jacobians`).
-        qp_options: keyword arguments for :func:`~controllers.boxqp.box_qp`.
+        qp_options: keyword arguments for :func:`~controllers.boxqp.box_qp` (an unknown key is a
+            ``ValueError``).
+
+    With float32 (or half) data the condensed QP is built and solved in float64 and the result cast back
+    (differentiably): the condensed Hessian of a long horizon is too ill-conditioned for float32 to find
+    or certify its minimizer.
     """
 
     def __init__(self, system: ManifoldSystem, horizon: int, Q: Tensor, R: Tensor, P: Tensor | None = None, *,
@@ -401,17 +484,28 @@ class ErrorStateMPC:
         if jacobians not in ("auto", "analytic", "autograd"):
             raise ValueError(f"{fn}: argument 'jacobians' must be 'auto', 'analytic' or 'autograd', "
                              f"got {jacobians!r}")
+        qp_options = {} if qp_options is None else qp_options
+        if not isinstance(qp_options, dict):
+            raise TypeError(f"{fn}: argument 'qp_options' must be a dict, got {type(qp_options).__name__}")
+        unknown = sorted(set(qp_options) - set(_QP_KEYS))
+        if unknown:
+            raise ValueError(f"{fn}: argument 'qp_options' has unknown keys {unknown}; box_qp accepts "
+                             f"{list(_QP_KEYS)}")
         self.system, self.manifold, self.N = system, M, horizon
         self.n, self.m = M.dim, int(system.m)
-        self.Q = _weight(Q, self.n, "Q", fn)
-        self.R = _weight(R, self.m, "R", fn)
-        self.P = self.Q if P is None else _weight(P, self.n, "P", fn)
+        self.Q = _checked_weight(Q, self.n, "Q", fn, strict=False)
+        self.R = _checked_weight(R, self.m, "R", fn, strict=True)
+        self.P = self.Q if P is None else _checked_weight(P, self.n, "P", fn, strict=False)
         # the system's own limits follow the data's dtype/device; limits passed here must match them
         self._own_limits = (u_lower is None, u_upper is None)
         if u_lower is None:
             u_lower = getattr(system, "u_lower", None)
         if u_upper is None:
             u_upper = getattr(system, "u_upper", None)
+        u_lower = _limit(u_lower, "u_lower", fn, horizon, self.m, self._own_limits[0])
+        u_upper = _limit(u_upper, "u_upper", fn, horizon, self.m, self._own_limits[1])
+        if isinstance(u_lower, float) and isinstance(u_upper, float) and u_lower > u_upper:
+            raise ValueError(f"{fn}: u_lower ({u_lower}) must be <= u_upper ({u_upper})")
         self.u_lower, self.u_upper = u_lower, u_upper
         self.bounded = any(b is not None and bool(torch.isfinite(torch.as_tensor(b)).any())
                            for b in (u_lower, u_upper))
@@ -421,43 +515,72 @@ class ErrorStateMPC:
         self.solver = solver if solver != "auto" else ("qp" if self.bounded else "riccati")
         self.grad = enum_arg(GradMode, grad, "grad", fn)
         self.jacobians = jacobians
-        self.qp_options = dict(qp_options or {})
+        self.qp_options = dict(qp_options)
 
     # -- helpers ---------------------------------------------------------------------------------
-    def _bounds(self, u_bar: Tensor) -> tuple[Tensor, Tensor]:
-        """Limits on ``δu = u − ū``, ``(*B, N, m)`` each (±inf where unbounded)."""
-        def as_t(b, inf, own):
+    def _limits(self, like: Tensor) -> tuple[Tensor, Tensor]:
+        """The absolute limits as tensors of ``like``'s dtype/device, broadcastable to ``(*B, N, m)``."""
+        def as_t(b, inf, own, name):
             if b is None:
-                return torch.full((), inf, dtype=u_bar.dtype, device=u_bar.device)
+                return torch.full((), inf, dtype=like.dtype, device=like.device)
             if isinstance(b, Tensor) and own:
-                return b.to(dtype=u_bar.dtype, device=u_bar.device)
+                return b.to(dtype=like.dtype, device=like.device)
             if isinstance(b, Tensor):
-                if b.dtype != u_bar.dtype or b.device != u_bar.device:
-                    raise TypeError(f"ErrorStateMPC: the limits must have u_ref's dtype and device "
-                                    f"({u_bar.dtype}, {u_bar.device}), got {b.dtype} on {b.device}")
+                if b.dtype != like.dtype or b.device != like.device:
+                    raise TypeError(f"ErrorStateMPC: argument '{name}' must have u_ref's dtype and device "
+                                    f"({like.dtype}, {like.device}), got {b.dtype} on {b.device}")
                 return b
-            return torch.as_tensor(b, dtype=u_bar.dtype, device=u_bar.device)
-        lo = as_t(self.u_lower, -torch.inf, self._own_limits[0])
-        hi = as_t(self.u_upper, torch.inf, self._own_limits[1])
-        return lo - u_bar, hi - u_bar
+            return torch.full((), b, dtype=like.dtype, device=like.device)
+        return (as_t(self.u_lower, -torch.inf, self._own_limits[0], "u_lower"),
+                as_t(self.u_upper, torch.inf, self._own_limits[1], "u_upper"))
+
+    def _bounds(self, u_bar: Tensor, batch) -> tuple[Tensor, Tensor, Tensor]:
+        """Limits on ``δu = u − ū``, ``(*B, N, m)`` each (±inf where unbounded), and the ``(*B,)`` reason
+        codes of the limits: ``NONFINITE_INPUT`` where an entry is NaN, ``INFEASIBLE_BOUNDS`` where
+        ``u_lower > u_upper``; such an element gets open limits (its outputs are NaN-ed by the caller)."""
+        lo, hi = self._limits(u_bar)
+        shape = (*batch, self.N, self.m)
+        lo, hi = lo.expand(shape), hi.expand(shape)
+        nan = (torch.isnan(lo) | torch.isnan(hi)).flatten(-2).any(-1)
+        crossed = (lo > hi).flatten(-2).any(-1)
+        reason = torch.where(nan, int(Reason.NONFINITE_INPUT),
+                             torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), 0))
+        bad = (reason != 0)[..., None, None]
+        lo = torch.where(bad, -torch.inf, lo)
+        hi = torch.where(bad, torch.inf, hi)
+        return lo - u_bar, hi - u_bar, reason
+
+    def _limit_batch(self) -> dict:
+        out = {}
+        for name, b in (("u_lower", self.u_lower), ("u_upper", self.u_upper)):
+            if isinstance(b, Tensor) and b.dim() > 2:
+                out[name] = b.shape[:-2]
+        return out
 
     def _prepare(self, x0, x_ref, u_ref: Tensor, fn: str):
         M, N, m = self.manifold, self.N, self.m
-        if not isinstance(u_ref, Tensor) or u_ref.dim() < 2 or u_ref.shape[-2:] != (N, m):
+        product = hasattr(M, "components")
+        for name, v in (("x0", x0), ("x_ref", x_ref)):
+            if (not product and not isinstance(v, Tensor)) or (product and not hasattr(v, "batch_shape")):
+                kind = "a ProductState" if product else "a torch.Tensor"
+                raise TypeError(f"{fn}: argument '{name}' must be a point of {M!r} ({kind}), "
+                                f"got {type(v).__name__}")
+        if not isinstance(u_ref, Tensor):
+            raise TypeError(f"{fn}: argument 'u_ref' must be a torch.Tensor, got {type(u_ref).__name__}")
+        if u_ref.dim() < 2 or u_ref.shape[-2:] != (N, m):
             raise ValueError(f"{fn}: argument 'u_ref' must have shape (*B, {N}, {m}) (horizon N={N}), "
-                             f"got {tuple(getattr(u_ref, 'shape', ()))}")
+                             f"got {tuple(u_ref.shape)}")
         rb = _batch_shape(M, x_ref)
         if len(rb) < 1 or rb[-1] != N + 1:
             raise ValueError(f"{fn}: argument 'x_ref' must be a point of {M!r} with batch (*B, {N + 1}) "
                              f"(N+1 reference states), got batch {tuple(rb)}")
         x0b = _batch_shape(M, x0)
-        try:
-            batch = torch.broadcast_shapes(x0b, rb[:-1], u_ref.shape[:-2])
-        except RuntimeError as e:
-            raise ValueError(f"{fn}: batch shapes of x0 {tuple(x0b)}, x_ref {tuple(rb[:-1])} and u_ref "
-                             f"{tuple(u_ref.shape[:-2])} do not broadcast") from e
+        batch = broadcast_batch(fn, {"x0": x0b, "x_ref": rb[:-1], "u_ref": u_ref.shape[:-2],
+                                     "Q": self.Q.shape[:-2], "R": self.R.shape[:-2], "P": self.P.shape[:-2],
+                                     **self._limit_batch()})
         leaf = _leaves(x0)[0]
-        for name, t in (("x_ref", _leaves(x_ref)[0]), ("u_ref", u_ref), ("Q", self.Q), ("R", self.R)):
+        for name, t in (("x_ref", _leaves(x_ref)[0]), ("u_ref", u_ref), ("Q", self.Q), ("R", self.R),
+                        ("P", self.P)):
             if t.dtype != leaf.dtype or t.device != leaf.device:
                 raise TypeError(f"{fn}: argument '{name}' must have x0's dtype and device ({leaf.dtype}, "
                                 f"{leaf.device}), got {t.dtype} on {t.device}")
@@ -481,28 +604,79 @@ class ErrorStateMPC:
         M.check(x_ref, "x_ref")
         return x0, x_ref, u_ref, ok, batch
 
-    def _weights(self, batch, dtype):
+    def _weights(self, batch) -> tuple[Tensor, Tensor, Tensor]:
+        """``(Qs (*B, N+1, n, n), R (m, m) or (*B, m, m), reason (*B,))``: the stage and terminal weights,
+        with the failing elements of batched weights replaced (and reported, :func:`_weight_reason`)."""
         N, n = self.N, self.n
-        Qs = torch.cat([self.Q.expand(*batch, n, n).unsqueeze(-3).expand(*batch, N, n, n),
-                        self.P.expand(*batch, n, n).unsqueeze(-3)], -3)
-        return Qs
+        reason = torch.zeros(batch, dtype=torch.int64, device=self.Q.device)
+        ws = []
+        for W, strict in ((self.Q, False), (self.R, True), (self.P, False)):
+            if W.dim() > 2:
+                W, r = _weight_reason(W, strict)
+                reason = first_failure(reason, r.expand(batch))
+            ws.append(W)
+        Q, R, P = ws
+        Qs = torch.cat([Q.expand(*batch, n, n).unsqueeze(-3).expand(*batch, N, n, n),
+                        P.expand(*batch, n, n).unsqueeze(-3)], -3)
+        return Qs, R, reason
+
+    def _warm(self, warm, u_ref: Tensor, batch, fn: str, name: str = "warm") -> Tensor | None:
+        """``warm − u_ref`` (detached), after checking the type and shape of ``warm`` (argument ``name``)."""
+        if warm is None:
+            return None
+        N, m = self.N, self.m
+        if not isinstance(warm, Tensor):
+            raise TypeError(f"{fn}: argument '{name}' must be a torch.Tensor, got {type(warm).__name__}")
+        if warm.dtype != u_ref.dtype or warm.device != u_ref.device:
+            raise TypeError(f"{fn}: argument '{name}' must have u_ref's dtype and device ({u_ref.dtype}, "
+                            f"{u_ref.device}), got {warm.dtype} on {warm.device}")
+        ok = warm.dim() >= 2 and warm.shape[-2:] == (N, m)
+        if ok:
+            try:
+                ok = torch.broadcast_shapes(warm.shape[:-2], batch) == batch
+            except RuntimeError:
+                ok = False
+        if not ok:
+            raise ValueError(f"{fn}: argument '{name}' must have shape (*B, {N}, {m}) with batch dims "
+                             f"broadcastable to {tuple(batch)}, got {tuple(warm.shape)}")
+        return warm.detach() - u_ref.detach()
+
+    def _inputs(self, x0, x_ref, u_ref, warm, fn: str):
+        """Checked and sanitized inputs of a solve: ``(x0, x_ref, u_ref, batch, Qs, R, lo, hi, warm,
+        reason)`` with ``reason`` the per-element codes of the inputs (non-finite state or reference,
+        then weights, then limits: the first failure wins)."""
+        x0, x_ref, u_ref, ok, batch = self._prepare(x0, x_ref, u_ref, fn)
+        w = self._warm(warm, u_ref, batch, fn)
+        Qs, R, wreason = self._weights(batch)
+        lo, hi, lreason = self._bounds(u_ref, batch)
+        reason = first_failure(torch.where(ok, 0, int(Reason.NONFINITE_INPUT)), wreason, lreason)
+        return x0, x_ref, u_ref, batch, Qs, R, lo, hi, w, reason
 
     # -- one linear-quadratic solve on an error system ---------------------------------------------
-    def _solve_lq(self, es: ErrorSystem, dx0: Tensor, Qs: Tensor, q: Tensor | None, r: Tensor | None,
-                  lo: Tensor, hi: Tensor, warm: Tensor | None, *, solver: str, grad: GradMode,
-                  riccati_first: bool = True):
-        """Minimize Σ δxᵀQ_kδx + 2q_kᵀδx + δuᵀRδu + 2r_kᵀδu on the error system (δx_0 given).
+    def _solve_lq(self, es: ErrorSystem, dx0: Tensor, Qs: Tensor, R: Tensor, q: Tensor | None,
+                  r: Tensor | None, lo: Tensor, hi: Tensor, warm: Tensor | None, *, solver: str,
+                  grad: GradMode, riccati_first: bool = True):
+        """Minimize Σ δxᵀQ_kδx + 2q_kᵀδx + δuᵀRδu + 2r_kᵀδu on the error system (δx_0 given); ``R`` is
+        ``(m, m)`` or ``(*B, m, m)``.  The QP form runs in float64 for float32/half data (class docstring).
 
         Returns ``(δU (*B, N, m), δX (*B, N+1, n), cost (*B,), reason (*B,), kkt (*B,), clamped)``."""
         N, m = self.N, self.m
         batch = dx0.shape[:-1]
         dtype, dev = dx0.dtype, dx0.device
         n = dx0.shape[-1]
-        if (solver == "qp" and riccati_first and self.bounded and self.R.dim() == 2
+        if solver == "qp" and dtype in _REFINE_DTYPES:
+            def f64(t):
+                return None if t is None else t.to(torch.float64)
+            out = self._solve_lq(ErrorSystem(f64(es.A), f64(es.B), f64(es.c)), f64(dx0), f64(Qs), f64(R),
+                                 f64(q), f64(r), f64(lo), f64(hi), f64(warm), solver=solver, grad=grad,
+                                 riccati_first=riccati_first)
+            dU, dX, cost, reason, kkt, clamped = out
+            return dU.to(dtype), dX.to(dtype), cost.to(dtype), reason, kkt.to(dtype), clamped
+        if (solver == "qp" and riccati_first and self.bounded and R.dim() == 2
                 and batch.numel() * (N * m) ** 2 * (N + 1) * n > _RICCATI_FIRST_FLOPS):
             # a big condensed QP (O(N³) per element): solve all by Riccati (O(N)), which is the answer for
             # every element whose controls respect the limits, and condense only the others
-            out = self._solve_lq(es, dx0, Qs, q, r, lo, hi, warm, solver="riccati", grad=grad)
+            out = self._solve_lq(es, dx0, Qs, R, q, r, lo, hi, warm, solver="riccati", grad=grad)
             with torch.no_grad():
                 viol = ((out[0] < lo) | (out[0] > hi)).flatten(-2).any(-1)
             if not bool(viol.any()):
@@ -516,8 +690,8 @@ class ErrorStateMPC:
                 return t.reshape(-1, *t.shape[len(batch):])[idx]
 
             es_v = ErrorSystem(A=sub(es.A, 3), B=sub(es.B, 3), c=sub(es.c, 2))
-            res = self._solve_lq(es_v, sub(dx0, 1), sub(Qs, 3), sub(q, 2), sub(r, 2), sub(lo, 2), sub(hi, 2),
-                                 sub(warm, 2), solver="qp", grad=grad, riccati_first=False)
+            res = self._solve_lq(es_v, sub(dx0, 1), sub(Qs, 3), R, sub(q, 2), sub(r, 2), sub(lo, 2),
+                                 sub(hi, 2), sub(warm, 2), solver="qp", grad=grad, riccati_first=False)
             merged = []
             for full, part in zip(out, res):
                 flat = full.reshape(-1, *full.shape[len(batch):])
@@ -526,7 +700,7 @@ class ErrorStateMPC:
         if solver == "riccati":
             from controllers import riccati  # noqa: PLC0415  (riccati imports implicit; keep import cost lazy)
 
-            Rt = self.R if self.R.dim() == 2 else self.R.unsqueeze(-3)  # (*B, 1, m, m): one R for all t
+            Rt = R if R.dim() == 2 else R.unsqueeze(-3)  # (*B, 1, m, m): one R for all t
             cost = QuadraticCost(Q=Qs, R=Rt, q=q, r=r, check=False)
             prob = LQProblem(LinearDynamics(es.A, es.B, es.c), cost, dx0, horizon=N)
             sol = riccati.solve(prob, grad=grad, check=False)
@@ -537,7 +711,7 @@ class ErrorStateMPC:
         Su, free_x = _condense(es, dx0)  # (*B, N+1, n, Nm), (*B, N+1, n): δX = Su δU + free_x
         QSu = (Qs @ Su).reshape(*batch, (N + 1) * n, N * m)  # Q̄ S_u, block rows
         SuT = Su.reshape(*batch, (N + 1) * n, N * m).transpose(-1, -2)
-        Rb = self.R.expand(*batch, m, m)
+        Rb = R.expand(*batch, m, m)
         eyeN = torch.eye(N, dtype=dtype, device=dev)
         Rbar = (eyeN[:, None, :, None] * Rb[..., None, :, None, :]).reshape(*batch, N * m, N * m)
         H = SuT @ QSu + Rbar
@@ -560,7 +734,8 @@ class ErrorStateMPC:
             with torch.no_grad():
                 viol = ((dU < lo) | (dU > hi)).any(-1)  # (*B,): elements whose Eq. 31 breaks a limit
             if bool(viol.all()):
-                dU, reason, kkt, clamped = self._box(H, g, lo, hi, dU, warm, grad)
+                dU, rbox, kkt, clamped = self._box(H, g, lo, hi, dU, warm, grad)
+                reason = first_failure(reason, rbox)
             elif bool(viol.any()):  # the box QP only for those; the others keep the closed form
                 idx = viol.reshape(-1).nonzero().squeeze(-1)
                 nb = idx.shape[0]
@@ -571,7 +746,8 @@ class ErrorStateMPC:
                 dUs, rs, ks, cs = self._box(sub(H), sub(g), sub(lo), sub(hi), sub(dU), w, grad)
                 flat = dU.reshape(-1, N * m).index_copy(0, idx, dUs)
                 dU = flat.reshape(*batch, N * m)
-                reason = reason.reshape(-1).index_copy(0, idx, rs.to(reason.dtype).reshape(nb)).reshape(batch)
+                rs = first_failure(reason.reshape(-1)[idx], rs.to(reason.dtype).reshape(nb))
+                reason = reason.reshape(-1).index_copy(0, idx, rs).reshape(batch)
                 kkt = kkt.reshape(-1).index_copy(0, idx, ks.to(kkt.dtype).reshape(nb)).reshape(batch)
                 clamped = clamped.reshape(-1, N * m).index_copy(0, idx, cs).reshape(*batch, N * m)
         dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
@@ -616,22 +792,21 @@ class ErrorStateMPC:
                 plan shifted (:func:`controllers.mpc.shift`).
         """
         fn = "ErrorStateMPC.solve"
-        x0, x_ref, u_ref, ok, batch = self._prepare(x0, x_ref, u_ref, fn)
+        x0, x_ref, u_ref, batch, Qs, R, lo, hi, w, reason0 = self._inputs(x0, x_ref, u_ref, warm, fn)
         M = self.manifold
         es = error_system(self.system, x_ref, u_ref, jacobians=self.jacobians)
         dx0 = M.boxminus(x0, time_index(M, x_ref, 0), check=False)
-        lo, hi = self._bounds(u_ref)
-        w = None if warm is None else (warm.detach() - u_ref.detach())
-        Qs = self._weights(batch, dx0.dtype)
-        dU, dX, cost, reason, kkt, clamped = self._solve_lq(es, dx0, Qs, None, None, lo, hi, w,
+        dU, dX, cost, reason, kkt, clamped = self._solve_lq(es, dx0, Qs, R, None, None, lo, hi, w,
                                                             solver=self.solver, grad=self.grad)
         U = u_ref + dU
-        reason = torch.where(ok, reason, int(Reason.NONFINITE_INPUT))
+        reason = first_failure(reason0, reason)
+        ok = reason0 == 0
         nan = torch.full((), torch.nan, dtype=U.dtype, device=U.device)
         U = torch.where(ok[..., None, None], U, nan)
         return ErrorStateSolution(u=U[..., 0, :], U=U, dx=torch.where(ok[..., None, None], dX, nan),
                                   cost=torch.where(ok, cost, nan), status=SolverStatus.from_reason(reason),
-                                  kkt_residual=kkt, clamped=clamped)
+                                  kkt_residual=torch.where(ok, kkt, nan),
+                                  clamped=clamped & ok[..., None, None])
 
     __call__ = solve
 
@@ -644,14 +819,13 @@ class ErrorStateMPC:
         ``u_init`` ``(*B, N, m)``: the first linearization controls (default ``u_ref`` clipped to the
         limits); ``tol``: relative projected-gradient tolerance (default ``sqrt(eps)`` of the dtype)."""
         fn = "ErrorStateMPC.iterate"
-        x0, x_ref, u_ref, ok, batch = self._prepare(x0, x_ref, u_ref, fn)
+        x0, x_ref, u_ref, batch, Qs, R, lo_abs, hi_abs, _, reason0 = self._inputs(x0, x_ref, u_ref, None, fn)
+        ok = reason0 == 0
+        lo_abs, hi_abs = lo_abs + u_ref, hi_abs + u_ref  # absolute (±inf stays ±inf)
         M, N, m = self.manifold, self.N, self.m
         dtype, dev = u_ref.dtype, u_ref.device
         tol = torch.finfo(dtype).eps ** 0.5 if tol is None else tol
-        lo_abs, hi_abs = self._bounds(torch.zeros_like(u_ref))
-        lo_abs, hi_abs = lo_abs.expand(*batch, N, m), hi_abs.expand(*batch, N, m)
-        Qs = self._weights(batch, dtype)
-        Rb = self.R.expand(*batch, m, m)
+        Rb = R.expand(*batch, m, m)
 
         def true_cost(x, U):
             e = M.boxminus(x, x_ref, check=False)
@@ -659,8 +833,10 @@ class ErrorStateMPC:
             return ((e.unsqueeze(-2) @ Qs @ e.unsqueeze(-1)).sum((-3, -2, -1))
                     + (du.unsqueeze(-2) @ Rb.unsqueeze(-3) @ du.unsqueeze(-1)).sum((-3, -2, -1))), e
 
+        if u_init is not None:
+            u_init = self._warm(u_init, u_ref, batch, fn, "u_init") + u_ref.detach()
         with torch.no_grad():
-            U = (u_ref if u_init is None else u_init.expand(*batch, N, m)).detach()
+            U = (u_ref if u_init is None else u_init).detach()
             U = torch.minimum(torch.maximum(U, lo_abs.detach()), hi_abs.detach())
             x0d = _detach(x0)
             xr, ur = _detach(x_ref), u_ref.detach()
@@ -672,7 +848,7 @@ class ErrorStateMPC:
             kkt = torch.full(batch, torch.inf, dtype=dtype, device=dev)
             for _ in range(max_iter):
                 dU, gnorm, scale = self._gn_step(x, U, xr, ur, lo_abs.detach(), hi_abs.detach(), Qs.detach(),
-                                                 Rb.detach(), grad_mode=False)
+                                                 R.detach(), grad_mode=False)
                 kkt = torch.where(done, kkt, gnorm / scale)
                 conv = (gnorm <= tol * scale) & ~done
                 reason = torch.where(conv, int(Reason.CONVERGED), reason)
@@ -704,11 +880,11 @@ class ErrorStateMPC:
         # the returned point, differentiable: one Gauss-Newton step at the (detached) solution
         need_grad = self.grad is not GradMode.NONE and torch.is_grad_enabled()
         if need_grad:
-            dU, _, _ = self._gn_step(x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, Rb, grad_mode=True)
+            dU, _, _ = self._gn_step(x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, R, grad_mode=True)
             U = U + dU
             x = manifold_rollout(self.system, x0, U)
         Jfin, e = true_cost(x, U)
-        reason = torch.where(ok, reason, int(Reason.NONFINITE_INPUT))
+        reason = first_failure(reason0, reason)
         nan = torch.full((), torch.nan, dtype=dtype, device=dev)
         U = torch.where(ok[..., None, None], U, nan)
         clamped = (U <= lo_abs) | (U >= hi_abs)
@@ -717,10 +893,11 @@ class ErrorStateMPC:
                                   status=SolverStatus.from_reason(reason, iters),
                                   kkt_residual=torch.where(ok, kkt, nan), clamped=clamped, x=x)
 
-    def _gn_step(self, x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, Rb, *, grad_mode: bool):
+    def _gn_step(self, x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, R, *, grad_mode: bool):
         """The Gauss–Newton QP step about the rollout ``(x, U)`` and the projected-gradient norm at ``U``."""
         M, N, m = self.manifold, self.N, self.m
         batch = U.shape[:-2]
+        Rb = R.expand(*batch, m, m)
         es = error_system(self.system, x, U, jacobians=self.jacobians)
         e = M.boxminus(x, x_ref, check=False)  # (*B, N+1, n)
         Jm = _boxminus_jacobian(M, x, x_ref)  # (*B, N+1, n, n)
@@ -730,7 +907,7 @@ class ErrorStateMPC:
         dx0 = torch.zeros(*batch, self.n, dtype=U.dtype, device=U.device)
         lo, hi = lo_abs - U, hi_abs - U
         # the condensed form even without limits: the certificate below needs S_u anyway
-        dU = self._solve_lq(es, dx0, Qt, q, r, lo, hi, None, solver="qp",
+        dU = self._solve_lq(es, dx0, Qt, R, q, r, lo, hi, None, solver="qp",
                             grad=self.grad if grad_mode else GradMode.NONE)[0]
         # gradient of the true cost w.r.t. U (exact: the first-order terms of the model are exact)
         Su, _ = _condense(ErrorSystem(es.A, es.B, torch.zeros_like(es.c)), dx0)
@@ -790,10 +967,11 @@ def _boxminus_jacobian(M, x_bar, x_ref) -> Tensor:
 def _active_set_solve(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, clamped: Tensor, x: Tensor) -> Tensor:
     """The box-QP minimizer recomputed with autograd on the active set found by the solver: clamped
     components at their (differentiable) bounds, the free ones from ``H_ff x_f = −(g + H_fc x_c)``."""
-    mid = 0.5 * (lo.detach() + hi.detach())
-    at_lo = clamped & (x.detach() <= torch.where(torch.isfinite(mid), mid, x.detach()))
+    # the nearer bound, compared as distances: exact with an infinite bound (a midpoint of lo = -inf and a
+    # finite hi would be -inf and put a control clamped at hi on lo)
+    xd = x.detach()
+    at_lo = clamped & ((xd - lo.detach()) <= (hi.detach() - xd))
     xc = torch.where(clamped, torch.where(at_lo, lo, hi), torch.zeros((), dtype=H.dtype))
-    xc = torch.where(clamped, xc, torch.zeros((), dtype=H.dtype))
     free = ~clamped
     rhs = -(g + (H @ xc.unsqueeze(-1)).squeeze(-1))
     rhs = torch.where(free, rhs, torch.zeros((), dtype=H.dtype))

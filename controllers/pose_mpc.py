@@ -32,11 +32,13 @@ gives the inscribed box ``|v_i| ≤ v_max/√3``, ``|ω_i| ≤ ω_max/√3``, wh
 
 from __future__ import annotations
 
+import copy
 import math
 
 import torch
 from torch import Tensor
 
+from controllers._validate import all_finite
 from controllers.manifold_mpc import ErrorStateMPC, ErrorStateSolution
 from controllers.problem import GradMode
 from torchlie import magnus, se3
@@ -121,11 +123,24 @@ def twist_box(v_max: float, w_max: float, *, dtype: torch.dtype = torch.float64,
     return -hi, hi
 
 
-def _check_pose(X, name: str, fn: str, tail: int) -> None:
-    if not isinstance(X, Tensor) or X.dim() < 2 + tail or X.shape[-2:] != (4, 4):
+def _check_pose(X, name: str, fn: str, tail: int, like: Tensor | None = None) -> None:
+    """``X`` a tensor of poses ``(*B, 4, 4)`` (``tail``: ``(*B, N+1, 4, 4)``) on SE(3) within torchlie's
+    manifold tolerance for its dtype (``ValueError`` naming ``name``; non-finite poses are left to the
+    per-element status ``NONFINITE_INPUT``), with ``like``'s dtype and device (``TypeError``)."""
+    if not isinstance(X, Tensor):
+        raise TypeError(f"{fn}: argument '{name}' must be a torch.Tensor of 4x4 poses, "
+                        f"got {type(X).__name__}")
+    if X.dim() < 2 + tail or X.shape[-2:] != (4, 4):
         raise ValueError(f"{fn}: argument '{name}' must be a tensor of 4x4 poses with shape "
-                         f"{'(*B, N+1, 4, 4)' if tail else '(*B, 4, 4)'}, "
-                         f"got {tuple(getattr(X, 'shape', ()))}")
+                         f"{'(*B, N+1, 4, 4)' if tail else '(*B, 4, 4)'}, got {tuple(X.shape)}")
+    if like is not None and (X.dtype != like.dtype or X.device != like.device):
+        raise TypeError(f"{fn}: argument '{name}' must have X's dtype and device "
+                        f"({like.dtype}, {like.device}), got {X.dtype} on {X.device}; cast explicitly")
+    fin = all_finite(X, 2)[..., None, None]
+    _SE3.check_point(torch.where(fin, X.detach(), torch.eye(4, dtype=X.dtype, device=X.device)), name, fn)
+
+
+_SE3 = SE3()
 
 
 class PoseMPC:
@@ -154,6 +169,9 @@ class PoseMPC:
             raise ValueError(f"{fn}: argument 'dt' must be a positive finite float, got {dt!r}")
         if order is None and frame != "world":
             raise ValueError(f"{fn}: argument 'order' may be None (closed form) only for frame='world'")
+        if order is not None and (isinstance(order, bool) or not isinstance(order, int) or order < 0):
+            raise ValueError(f"{fn}: argument 'order' must be a non-negative int (or None in the world "
+                             f"frame), got {order!r}")
         self.frame, self.N, self.dt, self.order = frame, horizon, float(dt), order
         self._kw = dict(P=P, u_lower=u_lower, u_upper=u_upper, solver="qp", grad=grad, qp_options=qp_options)
         self._Q, self._R = Q, R
@@ -172,15 +190,24 @@ class PoseMPC:
         """
         fn = "PoseMPC.solve"
         _check_pose(X, "X", fn, 0)
-        _check_pose(X_ref, "X_ref", fn, 1)
+        _check_pose(X_ref, "X_ref", fn, 1, like=X)
         if X_ref.shape[-3] != self.N + 1:
             raise ValueError(f"{fn}: argument 'X_ref' must hold N+1 = {self.N + 1} poses, "
                              f"got {X_ref.shape[-3]}")
+        if not isinstance(T_ref, Tensor):
+            raise TypeError(f"{fn}: argument 'T_ref' must be a torch.Tensor, got {type(T_ref).__name__}")
+        if T_ref.dtype != X.dtype or T_ref.device != X.device:
+            raise TypeError(f"{fn}: argument 'T_ref' must have X's dtype and device ({X.dtype}, {X.device}), "
+                            f"got {T_ref.dtype} on {T_ref.device}; cast explicitly")
         if self.frame == "se3":
             return self._mpc.solve(X, X_ref, T_ref, warm=warm)
         if self.frame == "world":
             xi0 = se3.log(X)
-            mpc = ErrorStateMPC(ME2WorldModel(xi0, self.dt, self.order), self.N, self._Q, self._R, **self._kw)
+            # the model of a non-finite pose is built at ξ = 0: its element is reported NONFINITE_INPUT from
+            # xi0 below, and no NaN enters the linearization, whose backward would reach shared weights
+            xi_model = torch.where(all_finite(xi0, 1)[..., None], xi0, torch.zeros((), dtype=xi0.dtype))
+            mpc = copy.copy(self._mpc)  # validated once in __init__; only the model depends on the pose
+            mpc.system = ME2WorldModel(xi_model, self.dt, self.order)
             return mpc.solve(xi0, se3.log(X_ref), T_ref, warm=warm)
         omega_ref = se3.log(se3.inverse(X).unsqueeze(-3) @ X_ref)  # (*B, N+1, 6): log(X⁻¹ X*_k)
         return self._mpc.solve(torch.zeros_like(omega_ref[..., 0, :]), omega_ref, T_ref, warm=warm)
