@@ -54,9 +54,13 @@ holds.  In :meth:`~ErrorStateMPC.iterate` the same is done at the returned point
 Gauss–Newton Hessian.
 
 **Status** per element (:class:`~controllers.problem.Reason`): ``NONFINITE_INPUT`` for a NaN/inf in one
-element's state or reference (its control is NaN, the others are untouched), ``SINGULAR_QUU`` where the
-QP Hessian is not positive definite, ``MAX_ITERATIONS``/``STALLED`` where the box QP or the iteration
-did not certify its point.  A state off the manifold is a ``ValueError`` naming the argument.
+element's state, reference, batched weight or tensor limit, ``NOT_POSITIVE_DEFINITE`` for a batched weight
+that is not PSD (Q, P) / PD (R), ``INFEASIBLE_BOUNDS`` where ``u_lower > u_upper`` (such an element's
+outputs are NaN, the others are solved as if alone), ``SINGULAR_QUU`` where the QP Hessian is not positive
+definite, ``MAX_ITERATIONS``/``STALLED`` where the box QP or the iteration did not certify its point.
+Each element keeps its first failure in that order (:func:`first_failure`): no later stage overwrites it.
+A state off the manifold, a shared weight that is not finite and symmetric PSD/PD, and an argument of the
+wrong type or shape are a ``TypeError``/``ValueError`` naming the argument.
 """
 
 from __future__ import annotations
@@ -300,11 +304,13 @@ def riccati_terminal_weight(system: ManifoldSystem, x_d, u_d: Tensor, Q: Tensor,
     three integrations: over the paper's 8 steps of 10 ms hardly at all); this ``P`` as the terminal
     weight makes the MPC behave like the infinite-horizon LQR near the trim point.  Returns ``(P, done)``
     with ``done`` ``(*B,)`` bool: the relative change fell below ``tol`` (default ``sqrt(eps)``).
+    ``Q``, ``R`` are checked as in :class:`ErrorStateMPC`; an element whose ``R + BᵀPB`` is singular (a
+    batched ``R`` that is not PD) ends with ``done`` False and never stops the others.
     """
     M = system.manifold
     n, m = M.dim, u_d.shape[-1]
-    Q = _weight(Q, n, "Q", "riccati_terminal_weight")
-    R = _weight(R, m, "R", "riccati_terminal_weight")
+    Q = _checked_weight(Q, n, "Q", "riccati_terminal_weight", strict=False)
+    R = _checked_weight(R, m, "R", "riccati_terminal_weight", strict=True)
     xs = _stack_points(M, [x_d, x_d])
     es = error_system(system, xs, u_d.unsqueeze(-2))
     A, B = es.A[..., 0, :, :], es.B[..., 0, :, :]
@@ -313,7 +319,7 @@ def riccati_terminal_weight(system: ManifoldSystem, x_d, u_d: Tensor, Q: Tensor,
     done = torch.zeros(A.shape[:-2], dtype=torch.bool, device=A.device)
     for _ in range(max_iter):
         PB = P @ B
-        K = torch.linalg.solve(R + B.transpose(-1, -2) @ PB, PB.transpose(-1, -2) @ A)
+        K = torch.linalg.solve_ex(R + B.transpose(-1, -2) @ PB, PB.transpose(-1, -2) @ A)[0]
         Pn = Q + A.transpose(-1, -2) @ P @ A - (A.transpose(-1, -2) @ PB) @ K
         Pn = 0.5 * (Pn + Pn.transpose(-1, -2))
         done = ((Pn - P).flatten(-2).norm(dim=-1) <= tol * Pn.flatten(-2).norm(dim=-1))
