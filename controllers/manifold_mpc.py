@@ -410,9 +410,11 @@ def first_failure(*reasons: Tensor) -> Tensor:
     return out
 
 
-#: the keyword arguments of :func:`box_qp` that ``qp_options`` may set (``check`` is the MPC's own business)
+#: the options of :func:`box_qp` that ``qp_options`` may set: its parameters other than the problem data and
+#: ``check`` (the MPC's own business), read from its signature
 _QP_KEYS = tuple(k for k, v in inspect.signature(box_qp).parameters.items()
-                 if v.kind is inspect.Parameter.KEYWORD_ONLY and k != "check")
+                 if k not in ("H", "g", "lower", "upper", "x0", "check")
+                 and v.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD))
 
 #: dtypes whose condensed QP is built and solved in float64 (cond(H) of a horizon of 40 exceeds 1/eps)
 _REFINE_DTYPES = (torch.float16, torch.bfloat16, torch.float32)
