@@ -44,7 +44,7 @@ import numpy as np
 import torch
 
 from learning._policy_io import decode, encode, policy_class, policy_name, register_policy
-from learning.envs.single import make_task
+from learning.envs.single import int_arg, make_task
 from learning.envs.task import Task
 
 __all__ = ["ALGOS", "PPO_DEFAULTS", "SAC_DEFAULTS", "DEFAULT_BUDGETS", "hyperparams", "default_budget",
@@ -234,13 +234,9 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
 
     algo = _algo(algo)
     task = make_task(task)
-    budget_steps = int(budget_steps)
-    if budget_steps < 1:
-        raise ValueError(f"train: argument 'budget_steps' must be a positive int, got {budget_steps}")
-    every = max(1, budget_steps // 10) if eval_every is None else int(eval_every)
-    if every < 1:
-        raise ValueError(f"train: argument 'eval_every' must be a positive int, got {eval_every}")
-    seeds = eval_seeds(eval_episodes)
+    budget_steps = int_arg(budget_steps, "budget_steps", "train")
+    every = max(1, budget_steps // 10) if eval_every is None else int_arg(eval_every, "eval_every", "train")
+    seeds = eval_seeds(int_arg(eval_episodes, "eval_episodes", "train"))
     kw = hyperparams(algo, task) if params is None else dict(params)
     if num_envs is not None:
         kw["n_envs"] = int(num_envs)

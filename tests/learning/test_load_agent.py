@@ -133,3 +133,12 @@ def test_old_agent_json_without_a_policy_still_loads_as_mlp(tmp_path):
     obs = _obs(5, 3)
     np.testing.assert_array_equal(bl.load_agent(tmp_path).predict(obs, deterministic=True)[0],
                                   res.model.predict(obs, deterministic=True)[0])
+
+
+def test_train_refuses_counts_that_are_not_ints(tmp_path):
+    """Issue 22 sweep: budget_steps=100.5 trained 100 steps and eval_episodes=1.5 evaluated 1, silently."""
+    for kw, name in ((dict(budget_steps=100.5), "budget_steps"), (dict(eval_every=50.5), "eval_every"),
+                     (dict(eval_episodes=1.5), "eval_episodes"), (dict(budget_steps=0), "budget_steps")):
+        args = dict(budget_steps=64, seed=0, eval_episodes=1) | kw
+        with pytest.raises(ValueError, match=f"train: argument '{name}' must be an int"):
+            bl.train("ppo", TASK, params=dict(TINY), tensorboard=False, **args)
