@@ -32,6 +32,7 @@ from torch import Tensor
 
 from controllers.problem import Reason, SolverStatus
 from torchlie import so3
+from torchlie.manifolds import SE3
 
 __all__ = ["IKResult", "dls_joint_velocity", "joint_limit_gradient", "pose_error", "resolved_rate_step",
            "solve_ik"]
@@ -58,31 +59,37 @@ def dls_joint_velocity(J: Tensor, twist: Tensor, damping: Tensor | float = 1e-2,
 
     ``q̇ = Jᵀ (J Jᵀ + λ² I)⁻¹ ξ + (I − J⁺ J) k (−∇h(q))`` with ``λ = damping`` (float or ``(*B,)``),
     ``k = nullspace_gain`` and ``h`` of :func:`joint_limit_gradient`.  The second term is added only when both
-    ``q (*B, n)`` and ``q_limits = (q_min, q_max)`` are given.  ``J⁺`` is the pseudo-inverse (SVD, with
-    singular values below ``n · eps · σ_max`` dropped), so ``J`` times the null-space term is zero up to
-    rounding: the joint-limit motion never changes the end-effector twist.  ``J (*B, 6, n)`` and ``twist``
-    must be in the same frame (both "world" or both "body" for a :class:`~controllers.systems.panda.Panda`).
-    Batch dims broadcast; dtype and device follow ``J``.  An element with a non-finite ``J``, twist or ``q``
-    gets NaN joint velocities; the others are computed as if it were absent (the SVD of one NaN matrix
-    would otherwise fail the whole batch).
+    ``q (*B, n)`` and ``q_limits = (q_min, q_max)`` are given.  Both terms come from one SVD
+    ``J = U Σ Vᵀ``: the first is ``V Σ (Σ² + λ²)⁻¹ Uᵀ ξ`` (the same matrix), and at ``λ = 0`` it is its limit
+    ``J⁺ ξ``, the minimum-norm least-squares velocity, also for a rank-deficient ``J`` (where
+    ``J Jᵀ`` is singular and the formula undefined).  ``J⁺`` drops the singular values below
+    ``max(m, n) · eps · σ_max`` (as :func:`torch.linalg.pinv`), so ``J`` times the null-space term is zero up
+    to rounding: the joint-limit motion never changes the end-effector twist.  ``J (*B, 6, n)`` and
+    ``twist`` must be in the same frame (both "world" or both "body" for a
+    :class:`~controllers.systems.panda.Panda`).  Batch dims broadcast; dtype and device follow ``J``.  An
+    element with a non-finite ``J``, twist or ``q`` gets NaN joint velocities; the others are computed as if
+    it were absent (no element's linear algebra can fail the batch).  No host synchronization.
     """
     if J.ndim < 2 or twist.shape[-1] != J.shape[-2]:
         raise ValueError(f"dls_joint_velocity: J (*B, m, n) and twist (*B, m) do not match: "
                          f"{tuple(J.shape)} and {tuple(twist.shape)}")
-    m = J.shape[-2]
+    m, n = J.shape[-2:]
     lam = torch.as_tensor(damping, dtype=J.dtype, device=J.device)
-    eye = torch.eye(m, dtype=J.dtype, device=J.device)
-    A = J @ J.transpose(-1, -2) + (lam * lam)[..., None, None] * eye
-    y = torch.linalg.solve(A, twist.unsqueeze(-1))
-    qd = (J.transpose(-1, -2) @ y).squeeze(-1)
+    ok = torch.isfinite(J).all(-1).all(-1)
+    U, S, Vh = torch.linalg.svd(torch.where(ok[..., None, None], J, 0.0), full_matrices=False)
+    rank = S > max(m, n) * torch.finfo(J.dtype).eps * S.amax(-1, keepdim=True)  # the singular values J⁺ keeps
+    lam2 = (lam * lam)[..., None]
+    gain = torch.where(rank | (lam2 > 0), S / (S * S + lam2).clamp_min(torch.finfo(J.dtype).tiny), 0.0)
+    c = gain * (U.transpose(-1, -2) @ twist.unsqueeze(-1)).squeeze(-1)
+    qd = (Vh.transpose(-1, -2) @ c.unsqueeze(-1)).squeeze(-1)
+    qd = torch.where(ok[..., None], qd, torch.nan)
     if q is None or q_limits is None:
         return qd
     q_min, q_max = q_limits
     z = torch.as_tensor(nullspace_gain, dtype=J.dtype, device=J.device)[..., None] * joint_limit_gradient(
         q, q_min, q_max)
-    ok = torch.isfinite(J).all(-1).all(-1)
-    Jp = torch.linalg.pinv(torch.where(ok[..., None, None], J, 0.0))
-    z_null = z - (Jp @ (J @ z.unsqueeze(-1))).squeeze(-1)
+    Vr = Vh * rank[..., None].to(J.dtype)  # the rows of Vᵀ that J⁺ J projects onto
+    z_null = z - (Vr.transpose(-1, -2) @ (Vr @ z.unsqueeze(-1))).squeeze(-1)
     return qd + z_null
 
 
@@ -178,6 +185,52 @@ def _solve_spd(A: Tensor, b: Tensor) -> Tensor:
     return torch.where((info == 0)[:, None] & torch.isfinite(x), x, 0.0)
 
 
+def _check_start(t, name: str, k: int, robot, target: Tensor) -> None:
+    """``q0`` (``k = 1``) or ``seeds`` (``k = 2``): a tensor ``(*B, [K,] n)`` like ``target``."""
+    n, batch = robot.dof, tuple(target.shape[:-2])
+    want = f"({n},) or (*B, {n})" if k == 1 else f"(K, {n}) or (*B, K, {n})"
+    if not isinstance(t, Tensor):
+        raise TypeError(f"solve_ik: argument '{name}' must be a torch.Tensor {want}, got {type(t).__name__}")
+    if t.dtype != target.dtype or t.device != target.device:
+        raise TypeError(f"solve_ik: {name} ({t.dtype}, {t.device}) must match target ({target.dtype}, "
+                        f"{target.device})")
+    lead = tuple(t.shape[:max(t.ndim - k, 0)])
+    fits = len(lead) <= len(batch) and all(a in (1, b) for a, b in zip(lead[::-1], batch[::-1]))
+    if t.ndim < k or t.shape[-1] != n or not fits:
+        raise ValueError(f"solve_ik: argument '{name}' must have shape {want} (robot.dof = {n} joints, *B "
+                         f"broadcasting to the target's batch {batch}), got {tuple(t.shape)}")
+
+
+def _check_ik_args(robot, target, q0, seeds, max_iter, rot_scale, damping) -> None:
+    """The argument checks of :func:`solve_ik` (a ValueError/TypeError naming the argument)."""
+    if not isinstance(target, Tensor):
+        raise TypeError(f"solve_ik: argument 'target' must be a torch.Tensor (*B, 4, 4), "
+                        f"got {type(target).__name__}")
+    if target.ndim < 2 or target.shape[-2:] != (4, 4):
+        raise ValueError(f"solve_ik: argument 'target' must be (*B, 4, 4), got {tuple(target.shape)}")
+    if not target.is_floating_point():
+        raise TypeError(f"solve_ik: argument 'target' must be floating point, got {target.dtype}")
+    for name, t, k in (("q0", q0, 1), ("seeds", seeds, 2)):
+        if t is not None:
+            _check_start(t, name, k, robot, target)
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
+        raise ValueError(f"solve_ik: argument 'max_iter' must be an int >= 0, got {max_iter!r}")
+    if not (math.isfinite(rot_scale) and rot_scale > 0):
+        raise ValueError(f"solve_ik: argument 'rot_scale' must be a finite float > 0, got {rot_scale!r}")
+    if not (math.isfinite(damping) and damping >= 0):
+        raise ValueError(f"solve_ik: argument 'damping' must be a finite float >= 0, got {damping!r}")
+    # rigid motions only: the pose error (log of R* Rᵀ) and the success test assume R* is a rotation.  The
+    # tolerance is torchlie's manifold_tolerance; non-finite elements get their per-element status instead.
+    finite = torch.isfinite(target).flatten(-2).all(-1)
+    eye = torch.eye(4, dtype=target.dtype, device=target.device)
+    try:
+        SE3().check(torch.where(finite[..., None, None], target, eye), "target")
+    except ValueError as e:
+        msg = str(e).split("; pass project=True")[0]
+        raise ValueError(f"solve_ik: {msg}; project it first: torchlie.manifolds.SE3().check(target, "
+                         "project=True)") from None
+
+
 def solve_ik(robot, target: Tensor, q0: Tensor | None = None, *, max_iter: int = 30, pos_tol: float = 1e-3,
              rot_tol: float = 1e-2, seeds: Tensor | None = None, rot_scale: float = 0.2,
              damping: float = 1e-3, wrap: bool = True) -> IKResult:
@@ -210,11 +263,16 @@ def solve_ik(robot, target: Tensor, q0: Tensor | None = None, *, max_iter: int =
     Returns:
         :class:`IKResult`.  Non-finite values in an element's target or ``q0`` make that element fail with
         ``NONFINITE_INPUT`` and leave the others untouched.
+
+    Raises:
+        ValueError / TypeError naming the argument, at entry: a ``target`` that is not a floating
+        ``(*B, 4, 4)`` tensor, or whose finite elements are not rigid motions (off SE(3) by more than
+        :func:`torchlie.manifolds.manifold_tolerance`: a scaled or sheared rotation block, a wrong last
+        row — a caller's error like a wrong shape, as in every manifold check of the project, not a
+        per-element status); a ``q0``/``seeds`` of the wrong dtype, device, joint count or batch;
+        ``max_iter`` not an int ``>= 0``; ``rot_scale <= 0`` or ``damping < 0``.
     """
-    if target.ndim < 2 or target.shape[-2:] != (4, 4):
-        raise ValueError(f"solve_ik: target must be (*B, 4, 4), got {tuple(target.shape)}")
-    if not target.is_floating_point():
-        raise TypeError(f"solve_ik: target must be floating point, got {target.dtype}")
+    _check_ik_args(robot, target, q0, seeds, max_iter, rot_scale, damping)
     dtype, device = target.dtype, target.device
     n = robot.dof
     batch = target.shape[:-2]
@@ -222,9 +280,6 @@ def solve_ik(robot, target: Tensor, q0: Tensor | None = None, *, max_iter: int =
     home = robot.home(dtype, device)
     if q0 is None:
         q0 = home
-    for name, t in (("q0", q0), ("seeds", seeds)):
-        if t is not None and (t.dtype != dtype or t.device != device):
-            raise TypeError(f"solve_ik: {name} ({t.dtype}, {t.device}) must match target ({dtype}, {device})")
     starts = q0.expand(*batch, n).unsqueeze(-2)
     if seeds is not None:
         starts = torch.cat((starts, seeds.expand(*batch, *seeds.shape[-2:])), -2)

@@ -10,10 +10,14 @@ curves measured by :func:`learning.evaluate`, and weights saved in a form that l
   environment steps on fixed held-out seeds (:func:`eval_seeds`; batched), giving a learning curve.
   It saves three files per run: ``model.zip`` (SB3's own format), ``policy.pt`` (the policy's plain
   ``state_dict``, loadable with ``torch.load(path, weights_only=True)``) and ``agent.json`` (algorithm,
-  task, seed, hyperparameters, curve, timings).
-* :func:`load_agent` rebuilds the agent from ``policy.pt`` + ``agent.json`` (no pickle involved).  It loads
-  an SB3 ``.zip`` only when asked to explicitly (``trust_zip=True``): **SB3 zip files unpickle Python
-  objects, so a model file from an untrusted source can execute arbitrary code when loaded.**
+  task, seed, hyperparameters, the policy by its registered name and its keyword arguments, curve,
+  timings).
+* :func:`load_agent` rebuilds the agent from ``policy.pt`` + ``agent.json`` (no pickle involved), for every
+  policy the project trains: SB3's ``MlpPolicy`` and :class:`~learning.mpc_policy.MPCActorCriticPolicy`
+  (others once :func:`register_policy` names them).  The policy is looked up by the name recorded, never
+  imported from a path read from the file; its keyword arguments are JSON (:mod:`learning._policy_io`).
+  It loads an SB3 ``.zip`` only when asked to explicitly (``trust_zip=True``): **SB3 zip files unpickle
+  Python objects, so a model file from an untrusted source can execute arbitrary code when loaded.**
 
 Seeds: training seed ``s`` seeds SB3 (torch, numpy, the action space) with ``s`` and gives training
 environment ``i`` the env seed ``1000·s + i``; evaluation episodes use the env seeds ``10⁶ + j``, which
@@ -39,13 +43,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from learning.envs.single import make_task
+from learning._policy_io import decode, encode, policy_class, policy_name, register_policy
+from learning.envs.single import int_arg, make_task
 from learning.envs.task import Task
 
 __all__ = ["ALGOS", "PPO_DEFAULTS", "SAC_DEFAULTS", "DEFAULT_BUDGETS", "hyperparams", "default_budget",
            "eval_seeds", "train_env_seed", "make_agent", "train", "TrainResult", "load_agent",
            "save_agent", "read_agent_meta", "steps_to_match", "mean_curve", "tensorboard_available",
-           "EVAL_SEED0"]
+           "EVAL_SEED0", "register_policy"]
 
 ALGOS = ("ppo", "sac")
 
@@ -187,6 +192,8 @@ class TrainResult:
     params: dict[str, Any]
     paths: dict[str, str] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    #: the policy's keyword arguments as :func:`train` was given them (recorded in ``agent.json``)
+    policy_kwargs: dict[str, Any] = field(default_factory=dict)
 
     def curve(self) -> dict[str, list]:
         return {"steps": list(self.steps), "returns": list(self.returns), "success": list(self.success)}
@@ -218,18 +225,18 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
     line per evaluation.  ``policy``/``policy_kwargs`` go to :func:`make_agent`.  With ``max_train_s``
     training also stops once its own wall time (evaluations excluded) exceeds that many seconds (an
     equal-wall-time comparison); ``num_timesteps`` then tells how far it got.
+
+    With ``out_dir``, everything :func:`load_agent` needs must be recordable, and is checked before
+    training: ``policy`` an SB3 alias or a registered policy (:func:`register_policy`), ``params`` and
+    ``policy_kwargs`` JSON-encodable (:mod:`learning._policy_io`) — else a ``TypeError`` naming it.
     """
     from stable_baselines3.common.callbacks import BaseCallback
 
     algo = _algo(algo)
     task = make_task(task)
-    budget_steps = int(budget_steps)
-    if budget_steps < 1:
-        raise ValueError(f"train: argument 'budget_steps' must be a positive int, got {budget_steps}")
-    every = max(1, budget_steps // 10) if eval_every is None else int(eval_every)
-    if every < 1:
-        raise ValueError(f"train: argument 'eval_every' must be a positive int, got {eval_every}")
-    seeds = eval_seeds(eval_episodes)
+    budget_steps = int_arg(budget_steps, "budget_steps", "train")
+    every = max(1, budget_steps // 10) if eval_every is None else int_arg(eval_every, "eval_every", "train")
+    seeds = eval_seeds(int_arg(eval_episodes, "eval_episodes", "train"))
     kw = hyperparams(algo, task) if params is None else dict(params)
     if num_envs is not None:
         kw["n_envs"] = int(num_envs)
@@ -240,6 +247,10 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
             kw["n_steps"] = max(2, budget_steps // n_envs)
             kw["batch_size"] = min(int(kw.get("batch_size", 64)), kw["n_steps"] * n_envs)
             notes.append(f"PPO rollout shortened to n_steps={kw['n_steps']} to fit the budget")
+    if out_dir is not None:  # what save_agent will record: fail now, not after training
+        policy_name(_sb3_class(algo), policy)
+        encode(kw, "train: argument 'params'")
+        encode(policy_kwargs or {}, "train: argument 'policy_kwargs'")
     tb = None
     if tensorboard and out_dir is not None:
         if tensorboard_available():
@@ -294,35 +305,34 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
     res = TrainResult(model=model, algo=algo, task=task.name, seed=int(seed), steps=curve["steps"],
                       returns=curve["returns"], success=curve["success"], train_time_s=train_time,
                       eval_time_s=clock["eval"], num_timesteps=int(model.num_timesteps), params=kw,
-                      notes=notes)
+                      notes=notes, policy_kwargs=dict(policy_kwargs or {}))
     if out_dir is not None:
         res.paths = save_agent(res, out_dir, budget_steps=budget_steps, eval_episodes=eval_episodes)
     return res
 
 
-def _jsonable(v: Any) -> Any:
-    from learning.evaluate import jsonable
-
-    try:
-        return jsonable(v, strict=True)
-    except TypeError as e:
-        raise TypeError(f"save_agent: hyperparameter {e}") from None
-
-
 def save_agent(res: TrainResult, out_dir: str | Path, **extra) -> dict[str, str]:
     """Write ``model.zip`` (SB3's format), ``policy.pt`` (``model.policy.state_dict()``, plain tensors) and
-    ``agent.json`` (everything :func:`load_agent` needs to rebuild the agent, plus the curve and timings)
-    into ``out_dir``; returns their paths."""
+    ``agent.json`` (everything :func:`load_agent` needs to rebuild the agent — the policy by its registered
+    name, its keyword arguments ``res.policy_kwargs`` — plus the curve and timings) into ``out_dir``;
+    returns their paths.  A policy or argument that cannot be recorded is a ``TypeError`` (before any file
+    is written)."""
+    from learning.evaluate import jsonable
+
+    algo_cls = _sb3_class(res.algo)
+    rebuild = {"policy": policy_name(algo_cls, type(res.model.policy)),
+               "policy_kwargs": encode(res.policy_kwargs, "save_agent: policy_kwargs"),
+               "params": encode(res.params, "save_agent: params")}
     d = Path(out_dir)
     d.mkdir(parents=True, exist_ok=True)
     paths = {"zip": str(d / "model.zip"), "pt": str(d / "policy.pt"), "json": str(d / "agent.json")}
     res.model.save(paths["zip"])
     state = {k: v.detach().cpu().clone() for k, v in res.model.policy.state_dict().items()}
     torch.save(state, paths["pt"])
-    meta = {"algo": res.algo, "task": res.task, "seed": res.seed, "params": res.params,
+    meta = {"algo": res.algo, "task": res.task, "seed": res.seed, **rebuild,
             "num_timesteps": res.num_timesteps, "train_time_s": res.train_time_s,
             "eval_time_s": res.eval_time_s, "curve": res.curve(), "notes": res.notes, **extra}
-    Path(paths["json"]).write_text(json.dumps(_jsonable(meta), indent=1, allow_nan=False) + "\n")
+    Path(paths["json"]).write_text(json.dumps(jsonable(meta), indent=1, allow_nan=False) + "\n")
     return paths
 
 
@@ -339,8 +349,10 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
                trust_zip: bool = False, device: str = "cpu"):
     """The agent saved by :func:`train` in ``path`` (its folder or its ``policy.pt``), rebuilt safely.
 
-    The agent is built afresh by :func:`make_agent` from the hyperparameters in ``agent.json`` and its
-    policy weights are read with ``torch.load(..., weights_only=True)``: plain tensors, no code runs.
+    The agent is built afresh by :func:`make_agent` from the hyperparameters, the policy (looked up by the
+    name recorded: an SB3 alias or a :func:`register_policy` entry) and its keyword arguments in
+    ``agent.json``, and its policy weights are read with ``torch.load(..., weights_only=True)``: plain
+    tensors, no code runs.  A file written before policies were recorded holds an ``MlpPolicy``.
 
     ``path`` may instead name an SB3 ``.zip``; it is loaded only with ``trust_zip=True``.  **Warning:**
     SB3 zip files contain pickled Python objects that ``load`` unpickles, so a model file from an
@@ -367,7 +379,10 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     task = make_task(meta["task"] if task is None else task)
     if task.name != meta["task"]:
         raise ValueError(f"load_agent: {pt} was trained on {meta['task']}, not {task.name}")
-    model = make_agent(algo, task, int(meta.get("seed", 0)), device=device, params=meta["params"])
+    policy = policy_class(_sb3_class(algo), meta.get("policy", "MlpPolicy"))
+    pk = decode(meta.get("policy_kwargs") or {})
+    model = make_agent(algo, task, int(meta.get("seed", 0)), device=device, params=decode(meta["params"]),
+                       policy=policy, policy_kwargs=pk or None)
     state = torch.load(pt, map_location=device, weights_only=True)
     model.policy.load_state_dict(state)
     model.num_timesteps = int(meta.get("num_timesteps", 0))

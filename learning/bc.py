@@ -53,7 +53,7 @@ import torch
 from gymnasium.vector import AutoresetMode
 from torch import Tensor, nn
 
-from learning.envs.single import as_dtype, make_task
+from learning.envs.single import as_action, as_device, as_dtype, int_arg, make_task
 from learning.envs.task import Task
 from learning.policies import DEFAULT_HORIZON, MPCAdapter, angle_dims, as_policy
 from learning.vector import TaskVectorEnv
@@ -168,12 +168,12 @@ def collect_demos(expert: Any, task: Task | str = "PendulumSwingUp", episodes: i
     if max_episode_steps is not None and max_episode_steps != task.max_episode_steps:
         import dataclasses
 
-        task = dataclasses.replace(task, max_episode_steps=int(max_episode_steps))
-    dtype, device = as_dtype(dtype), torch.device(device)
-    if not isinstance(episodes, int) or episodes < 1:
-        raise ValueError(f"collect_demos: argument 'episodes' must be a positive int, got {episodes!r}")
+        task = dataclasses.replace(task, max_episode_steps=int_arg(max_episode_steps, "max_episode_steps",
+                                                                   "collect_demos"))
+    dtype, device = as_dtype(dtype), as_device(device, "collect_demos")
+    episodes = int_arg(episodes, "episodes", "collect_demos")
     pol = as_policy(expert, task)
-    N = min(int(num_envs), episodes)
+    N = min(int_arg(num_envs, "num_envs", "collect_demos"), episodes)
     T = task.max_episode_steps
     fkw = dict(dtype=dtype, device=device)
     obs_l, act_l, st_l, ep_l, t_l = [], [], [], [], []
@@ -196,7 +196,7 @@ def collect_demos(expert: Any, task: Task | str = "PendulumSwingUp", episodes: i
         x_final = env.state
         for t in range(T):
             a = pol.act(obs)
-            a = torch.as_tensor(a).to(**fkw).reshape(n, task.m)
+            a = as_action(a, dtype, "the expert's action", device).reshape(n, task.m)
             finite = torch.isfinite(a).all(-1)
             bad |= active & ~finite
             active = active & finite

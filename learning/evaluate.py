@@ -16,7 +16,10 @@ the env applied: ``clip(a, -1, 1) · u_max``, zero where ``a`` is not finite):
   time, NaN after the episode ended.
 * ``effort``: ``Σ_t ‖u_t‖²`` in physical units.
 * ``violations``: the number of steps whose raw action had a finite component outside ``[-1, 1]`` (the
-  env clipped it) — a policy that respects the action box has none.
+  env clipped it) — a policy that respects the action box has none.  The action reaches the env's dtype
+  as it would reach the env itself (:func:`learning.envs.single.as_action`): clipped before the cast, so a
+  float64 ``1e39`` for a float32 env is a violation clipped to the bound, not an ``inf``; a complex action
+  is an error of the policy (below), never cast to its real part.
 * ``invalid``: the episode was ended by a bad policy output or a bad state rather than by the task: the
   action had a NaN/inf (the env ends that episode only, the others go on), the state or reward became
   non-finite, the action had the wrong shape, or the policy raised.  An *exception* in ``act``/``info``
@@ -51,7 +54,7 @@ import torch
 from gymnasium.vector import AutoresetMode
 from torch import Tensor
 
-from learning.envs.single import as_dtype, make_task
+from learning.envs.single import as_action, as_device, as_dtype, int_arg, make_task
 from learning.envs.task import Task
 from learning.policies import as_policy
 from learning.vector import TaskVectorEnv
@@ -303,10 +306,7 @@ def _call(policy, obs: Tensor, m: int):
     """``(action (N, m), info or None)``; raises :class:`_PolicyError` with the message of whatever went
     wrong in the policy (an exception, a wrong shape)."""
     try:
-        a = policy.act(obs)
-        if not isinstance(a, Tensor):
-            a = torch.as_tensor(np.asarray(a, dtype=np.float64))
-        a = a.detach().to(device=obs.device, dtype=obs.dtype)
+        a = as_action(policy.act(obs), obs.dtype, "the policy's action", obs.device)  # clipped, then cast
         if a.shape != (obs.shape[0], m):
             raise ValueError(f"the policy returned actions of shape {tuple(a.shape)}, "
                              f"expected ({obs.shape[0]}, {m})")
@@ -355,23 +355,23 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
         task = task.split("/", 1)[1].rsplit("-v", 1)[0]
     task = make_task(task, task_kwargs)
     dtype = as_dtype(dtype)
-    device = torch.device(device)
+    device = as_device(device, "evaluate")
+    num_envs = int_arg(num_envs, "num_envs", "evaluate")
     if seeds is None:
-        E = num_envs if episodes is None else episodes
-        if not isinstance(E, int) or E < 1:
-            raise ValueError(f"evaluate: argument 'episodes' must be a positive int, got {E!r}")
-        seeds = [seed + i for i in range(E)]
+        E = int_arg(num_envs if episodes is None else episodes, "episodes", "evaluate")
+        seeds = [int_arg(seed, "seed", "evaluate", 0) + i for i in range(E)]
     else:
-        seeds = [int(s) for s in seeds]
+        seeds = [int_arg(s, "seeds", "evaluate", 0) for s in seeds]
         if episodes is not None and episodes != len(seeds):
             raise ValueError("evaluate: give 'seeds' or 'episodes', not both with different counts")
         E = len(seeds)
         if E < 1:
             raise ValueError("evaluate: argument 'seeds' is empty")
-    if not isinstance(num_envs, int) or num_envs < 1:
-        raise ValueError(f"evaluate: argument 'num_envs' must be a positive int, got {num_envs!r}")
     N = min(num_envs, E)
-    T = task.max_episode_steps if max_episode_steps is None else int(max_episode_steps)
+    T = task.max_episode_steps if max_episode_steps is None else int_arg(max_episode_steps,
+                                                                         "max_episode_steps", "evaluate")
+    if timing_steps is not None:
+        int_arg(timing_steps, "timing_steps", "evaluate")
     pol = as_policy(policy, task)
     m = task.m
     scale = task.u_scale(dtype, device)

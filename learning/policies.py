@@ -30,11 +30,10 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import numpy as np
 import torch
 from torch import Tensor, nn
 
-from learning.envs.single import make_task
+from learning.envs.single import as_action, make_task
 from learning.envs.task import Task
 
 __all__ = ["Policy", "MPCAdapter", "angle_dims", "DEFAULT_HORIZON", "MPCExpert", "task_expert", "SB3Adapter",
@@ -57,10 +56,9 @@ class Policy:
 
 
 def _like(a: Any, obs: Tensor) -> Tensor:
-    """``a`` (tensor, array, list) as a tensor in the dtype and on the device of ``obs``."""
-    if isinstance(a, Tensor):
-        return a.detach().to(device=obs.device, dtype=obs.dtype)
-    return torch.as_tensor(np.asarray(a, dtype=np.float64)).to(device=obs.device, dtype=obs.dtype)
+    """``a`` (tensor, array, list) as a tensor in the dtype and on the device of ``obs``
+    (:func:`learning.envs.single.as_action`: real numbers only, clipped before the cast)."""
+    return as_action(a, obs.dtype, "the policy's action", obs.device)
 
 
 def _batched(a: Tensor, N: int, m: int | None) -> Tensor:

@@ -60,7 +60,9 @@ class SB3VecEnv(VecEnv):
         return obs
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = np.asarray(actions).reshape(self.num_envs, -1)
+        a = np.asarray(actions)
+        # one action per environment; a wrong size is left whole for the env's error, which names it
+        self._actions = a.reshape(self.num_envs, -1) if a.size and a.size % self.num_envs == 0 else a
 
     def step_wait(self):
         obs, rew, term, trunc, info = self.venv.step(self._actions)

@@ -7,7 +7,8 @@ Python loop over environments anywhere (not in step, not in autoreset, not in se
   env's device with ``output="torch"``.  Every call returns fresh buffers.  Rewards have the env's dtype.
 * **Truncation** is enforced by the env itself after ``max_episode_steps`` (``make_vec`` passes the
   registered value); an *invalid* step (non-finite action or state) truncates too, flagged in
-  ``infos["invalid"]`` with the mask ``infos["_invalid"]``.  Actions outside ``[-1, 1]`` are clipped.
+  ``infos["invalid"]`` with the mask ``infos["_invalid"]``.  Actions outside ``[-1, 1]`` are clipped (in
+  their own dtype first: :func:`~learning.envs.single.as_action`); complex actions are a ``TypeError``.
 * **Autoreset** (:class:`gymnasium.vector.AutoresetMode`, fixed at construction, in
   ``metadata["autoreset_mode"]``), with the semantics of gymnasium's ``SyncVectorEnv``:
 
@@ -38,7 +39,7 @@ from gymnasium.vector import AutoresetMode
 from gymnasium.vector.utils import batch_space
 
 from learning._counter_rng import keys_of_seeds, uniforms
-from learning.envs.single import as_dtype, make_task
+from learning.envs.single import as_action, as_device, as_dtype, make_task
 from learning.envs.task import Task
 
 __all__ = ["TaskVectorEnv", "as_autoreset_mode"]
@@ -164,7 +165,8 @@ class TaskVectorEnv(gym.vector.VectorEnv):
         num_envs: number of environments N.
         max_episode_steps: truncation horizon (default: the task's).
         autoreset_mode: see the module docstring.
-        device: torch device of the simulation (``"cpu"``, ``"cuda"``...).
+        device: torch device of the simulation (``"cpu"``, ``"cuda"``...); one this torch cannot use (CUDA
+            on a CPU-only build, a missing device index) is a ``ValueError`` here, in the constructor.
         dtype: ``torch.float32`` (default) or ``torch.float64``.
         output: ``"numpy"`` (default) or ``"torch"``.
         render_mode: ``None`` or ``"rgb_array"`` (``render()`` returns one frame per environment).
@@ -203,7 +205,7 @@ class TaskVectorEnv(gym.vector.VectorEnv):
             # the observation bounds are proven for the task's horizon: a longer one needs the task's
             self.task = dataclasses.replace(self.task, max_episode_steps=steps)
         self.num_envs, self.max_episode_steps, self.output = num_envs, steps, output
-        self.device, self.dtype = torch.device(device), as_dtype(dtype)
+        self.device, self.dtype = as_device(device, "TaskVectorEnv"), as_dtype(dtype)
         self.autoreset_mode = autoreset_mode_ = as_autoreset_mode(autoreset_mode)
         self.render_mode = render_mode
         self.metadata = {"render_modes": ["rgb_array"], "autoreset_mode": autoreset_mode_,
@@ -316,14 +318,10 @@ class TaskVectorEnv(gym.vector.VectorEnv):
     def step(self, actions):
         if not self._started:
             raise RuntimeError("TaskVectorEnv: call reset() before step()")
-        a = torch.as_tensor(actions.detach() if isinstance(actions, torch.Tensor) else np.asarray(actions))
+        a = as_action(actions, self.dtype, "TaskVectorEnv.step: actions", self.device)
         if a.shape != (self.num_envs, self.task.m):
             raise ValueError(f"TaskVectorEnv.step: actions must have shape ({self.num_envs}, {self.task.m}), "
                              f"got {tuple(a.shape)}")
-        if a.dtype != self.dtype or a.device != self.device:
-            if a.is_floating_point() and a.dtype != self.dtype:  # a cast to float32 cannot make an inf
-                a = torch.where(torch.isfinite(a), a.clamp(-2.0, 2.0), a)
-            a = a.to(device=self.device, dtype=self.dtype)
         a = a.contiguous()  # the AOT build reads its inputs as dense rows (a strided view would be misread)
         mode = self.autoreset_mode
         args = (self._x, self._t, a, self._ended, self._key, self._episode)

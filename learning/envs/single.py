@@ -12,7 +12,8 @@ Time limits are gymnasium's: :func:`gymnasium.make` wraps the env in ``TimeLimit
 flagged ``info["invalid"] = True``).  The observation bounds are proven for the task's own horizon: for
 longer episodes pass ``task_kwargs={"max_episode_steps": K}`` as well as ``max_episode_steps=K`` (a
 ``TimeLimit`` alone cannot tell the task; :class:`learning.vector.TaskVectorEnv` does this itself).
-Actions outside ``[-1, 1]`` are clipped (see :mod:`learning.envs.task`).
+Actions outside ``[-1, 1]`` are clipped (see :mod:`learning.envs.task`; :func:`as_action` is how every
+action enters); complex actions are a ``TypeError``.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ import torch
 from learning._counter_rng import keys_of_seeds, uniforms
 from learning.envs.task import Task
 
-__all__ = ["TaskEnv", "make_task", "as_dtype"]
+__all__ = ["TaskEnv", "make_task", "as_dtype", "as_action", "as_device", "int_arg"]
 
 
 def make_task(task: Task | str | type, task_kwargs: dict | None = None) -> Task:
@@ -53,6 +54,58 @@ def as_dtype(dtype) -> torch.dtype:
         raise ValueError(f"argument 'dtype' must be torch.float32 or torch.float64 (or their names), "
                          f"got {dtype!r}")
     return dtype
+
+
+def int_arg(value, name: str, owner: str, minimum: int = 1) -> int:
+    """``value`` as an int ``>= minimum`` (numpy ints too), else a ``ValueError`` naming the argument — a
+    float is refused, not truncated (``2.7`` steps would silently be 2)."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{owner}: argument '{name}' must be an int >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def as_device(device, owner: str) -> torch.device:
+    """``torch.device(device)``, checked usable here (a CUDA device on a torch without CUDA, or a device
+    index that does not exist, is a ``ValueError`` naming the argument instead of an error deep inside)."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"{owner}: argument 'device' must be a torch device, got {device!r} ({e})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"{owner}: argument 'device' is {str(dev)!r} but this torch has no CUDA "
+                         f"(torch {torch.__version__}, torch.cuda.is_available() is False); use 'cpu'")
+    try:
+        torch.empty(0, device=dev)
+    except (RuntimeError, AssertionError) as e:
+        raise ValueError(f"{owner}: argument 'device' {str(dev)!r} is not usable here: {e}") from None
+    return dev
+
+
+def as_action(action, dtype: torch.dtype, what: str, device=None) -> torch.Tensor:
+    """An action (tensor, array, sequence) as a real tensor of ``dtype`` (on ``device``), the one entry
+    path of actions into the envs, the evaluation and the demonstrations.
+
+    A complex or non-numeric action is a ``TypeError`` naming ``what`` (a cast would silently drop the
+    imaginary part).  Before the cast, finite values are clipped to ``±2`` *in the action's own dtype*, so
+    that a value the target dtype cannot hold (a float64 ``1e39`` for a float32 env) is an out-of-box
+    action like any other — clipped to the bound by the env, counted as a violation by
+    :func:`learning.evaluate` — and not an ``inf`` that ends the episode as invalid.  NaN and ±inf stay.
+    """
+    if isinstance(action, torch.Tensor):
+        a = action.detach()
+        kind = "c" if a.is_complex() else ("f" if a.is_floating_point() else "i")
+    else:
+        arr = np.asarray(action)
+        kind = arr.dtype.kind if arr.dtype.kind in "biufc" else "other"
+        if kind == "f" and arr.dtype.itemsize > np.dtype(np.float64).itemsize:  # long double
+            arr = np.where(np.isfinite(arr), np.clip(arr, -2.0, 2.0), arr).astype(np.float64)
+        a = torch.as_tensor(arr) if kind in "biuf" else None
+    if kind not in "biuf":
+        raise TypeError(f"{what} must be real numbers, got {getattr(action, 'dtype', type(action).__name__)}"
+                        + (" (the imaginary part would be dropped)" if kind == "c" else ""))
+    if a.is_floating_point() and a.dtype != dtype:
+        a = torch.where(torch.isfinite(a), a.clamp(-2.0, 2.0), a)
+    return a.to(device=device, dtype=dtype)
 
 
 class TaskEnv(gym.Env):
@@ -117,9 +170,7 @@ class TaskEnv(gym.Env):
     def step(self, action):
         if self._x is None:
             raise RuntimeError("TaskEnv: call reset() before step()")
-        a = np.asarray(action, dtype=np.float64)
-        a = torch.as_tensor(np.where(np.isfinite(a), np.clip(a, -2.0, 2.0), a))  # a cast cannot make an inf
-        a = a.to(self.dtype).reshape(1, -1)
+        a = as_action(action, self.dtype, "TaskEnv.step: action").reshape(1, -1)
         if a.shape[-1] != self.task.m:
             raise ValueError(f"TaskEnv.step: action must have shape ({self.task.m},), got {np.shape(action)}")
         x1, _, r, term, invalid = self.task.transition(self._x, a, self._scale)

@@ -207,3 +207,96 @@ def test_dls_a_nan_element_does_not_fail_the_batch():
     qd = dls_joint_velocity(J, xi, 1e-2, q, (lo, hi))
     assert torch.isnan(qd[2]).all()
     torch.testing.assert_close(qd[[0, 1, 3]], clean[[0, 1, 3]], rtol=0, atol=0)
+
+
+# ------------------------------------------------------------------------------------- issue 22 (8, 11, 12)
+def test_dls_rank_deficient_element_does_not_fail_the_batch():
+    """Issue 22 item 11: with damping=0 one rank-deficient J made the whole batch's solve raise (singular
+    J Jᵀ).  Every element is J⁺ ξ (the λ → 0 limit of DLS), checked against numpy's pinv per sample."""
+    np = pytest.importorskip("numpy")
+    robot = Panda()
+    gen = torch.Generator().manual_seed(3)
+    q = Panda.random_q(5, generator=gen, dtype=D64)
+    J = robot.jacobian(q)
+    J[1, 2] = 0.0  # a zero row: rank 5
+    J[3, :, 4:] = 0.0  # three joints without effect: rank 4 (J Jᵀ singular)
+    xi = torch.randn(5, 6, generator=gen, dtype=D64)
+    lo, hi = Panda.joint_limits(D64)
+    qd = dls_joint_velocity(J, xi, damping=0.0)
+    full = dls_joint_velocity(J, xi, 0.0, q, (lo, hi), nullspace_gain=3.0)
+    for i in range(5):
+        Ji, xii = J[i].numpy(), xi[i].numpy()
+        Jp = np.linalg.pinv(Ji, rcond=7 * np.finfo(np.float64).eps)
+        np.testing.assert_allclose(qd[i].numpy(), Jp @ xii, atol=1e-9, rtol=1e-9)
+        z = joint_limit_gradient(q[i], lo, hi).numpy() * 3.0
+        np.testing.assert_allclose(full[i].numpy(), Jp @ xii + z - Jp @ (Ji @ z), atol=1e-9, rtol=1e-9)
+    assert torch.isfinite(qd).all()
+
+
+def test_dls_damped_equals_formula_per_sample_and_nan_stays_alone():
+    """The SVD form equals ``Jᵀ (J Jᵀ + λ² I)⁻¹ ξ`` (numpy, per sample, per-element λ); a NaN twist or J gives
+    NaN for that element only."""
+    np = pytest.importorskip("numpy")
+    robot = Panda()
+    gen = torch.Generator().manual_seed(4)
+    J = robot.jacobian(Panda.random_q(4, generator=gen, dtype=D64))
+    xi = torch.randn(4, 6, generator=gen, dtype=D64)
+    lam = torch.tensor([1e-3, 0.0, 0.1, 1.0], dtype=D64)
+    qd = dls_joint_velocity(J, xi, lam)
+    for i in range(4):
+        Ji = J[i].numpy()
+        ref = Ji.T @ np.linalg.solve(Ji @ Ji.T + float(lam[i]) ** 2 * np.eye(6), xi[i].numpy())
+        np.testing.assert_allclose(qd[i].numpy(), ref, atol=1e-9, rtol=1e-9)
+    xi[1, 0] = math.nan
+    J[2, 0, 0] = math.inf
+    bad = dls_joint_velocity(J, xi, lam)
+    assert torch.isnan(bad[1]).all() and torch.isnan(bad[2]).all()
+    torch.testing.assert_close(bad[[0, 3]], qd[[0, 3]], rtol=0, atol=0)
+
+
+def test_ik_rejects_a_target_that_is_not_a_rigid_motion(panda):
+    """Issue 22 item 8: a target rotation scaled by 1.02 was 'solved' (success, FK 1.9e-2 off it)."""
+    target = _goals(3, 21)
+    scaled = target.clone()
+    scaled[1, :3, :3] *= 1.02
+    # the reference: that block is off SO(3) (RᵀR − I = 0.0404 I), far above torchlie's tolerance
+    R = scaled[1, :3, :3]
+    assert float((R.T @ R - torch.eye(3, dtype=D64)).abs().max()) > 0.04
+    with pytest.raises(ValueError, match="'target'.*SE\\(3\\)"):
+        solve_ik(panda, scaled)
+    sheared = target.clone()
+    sheared[0, 3, 0] = 0.1  # a wrong last row
+    with pytest.raises(ValueError, match="'target'"):
+        solve_ik(panda, sheared)
+    # a NaN element keeps its per-element status (not a ValueError), the rigid ones are solved
+    nan = target.clone()
+    nan[2, 0, 0] = math.nan
+    r = solve_ik(panda, nan)
+    assert r.reason[2] == Reason.NONFINITE_INPUT and bool(r.success[:2].all())
+    # float32 FK output is rigid to its own rounding: accepted
+    assert bool(solve_ik(panda, _goals(4, 22, torch.float32)).success.any())
+
+
+def test_ik_bad_starts_and_settings_name_the_argument(panda):
+    """Issue 22 item 12: a q0 with the wrong joint count raised torch's expand error from deep inside."""
+    target = _goals(3, 23)
+    with pytest.raises(ValueError, match=r"'q0'.*\(7,\) or \(\*B, 7\).*got \(6,\)"):
+        solve_ik(panda, target, q0=torch.zeros(6, dtype=D64))
+    with pytest.raises(ValueError, match="'q0'.*batch"):
+        solve_ik(panda, target, q0=torch.zeros(2, 7, dtype=D64))
+    with pytest.raises(ValueError, match=r"'seeds'.*\(K, 7\)"):
+        solve_ik(panda, target, seeds=torch.zeros(2, 6, dtype=D64))
+    with pytest.raises(ValueError, match="'seeds'"):
+        solve_ik(panda, target, seeds=torch.zeros(7, dtype=D64))
+    with pytest.raises(TypeError, match="'target'"):
+        solve_ik(panda, target.numpy())
+    with pytest.raises(TypeError, match="'q0'"):
+        solve_ik(panda, target, q0=[0.0] * 7)
+    for kw, name in ((dict(max_iter=-1), "max_iter"), (dict(max_iter=2.5), "max_iter"),
+                     (dict(rot_scale=-0.2), "rot_scale"), (dict(damping=-1.0), "damping"),
+                     (dict(rot_scale=float("nan")), "rot_scale")):
+        with pytest.raises(ValueError, match=f"'{name}'"):
+            solve_ik(panda, target, **kw)
+    # broadcasting starts still work: a per-goal q0 and shared seeds
+    r = solve_ik(panda, target, q0=Panda.home(D64).expand(3, 7), seeds=Panda.ik_seeds(D64)[:1])
+    assert r.q.shape == (3, 7)

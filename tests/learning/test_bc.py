@@ -168,3 +168,15 @@ def test_bc_study_records():
     assert {"weights", "weights_expert", "heldout_mse_init", "heldout_mse_expert_cost"} <= set(mpc[0])
     assert mpc[1]["train_samples"] == 24 and recs[1]["train_samples"] == 12
     assert "heldout_mse" in format_table(recs)
+
+
+def test_collect_demos_clips_a_huge_float64_action_and_refuses_float_counts():
+    """Issue 22 item 13 / sweep: in float32 a float64 1e39 expert action became inf (the episode ended at
+    step 0, nothing recorded), where the env clips it; a float num_envs was truncated."""
+    expert = lambda o: torch.full((o.shape[0], 1), 1e39, dtype=torch.float64)  # noqa: E731
+    d = collect_demos(expert, "PendulumSwingUp", episodes=2, num_envs=2, dtype=torch.float32,
+                      max_episode_steps=5)
+    assert d.length.tolist() == [5, 5] and len(d) == 10
+    assert bool((d.action == 1.0).all())
+    with pytest.raises(ValueError, match="'num_envs'"):
+        collect_demos(expert, "PendulumSwingUp", episodes=2, num_envs=1.5)

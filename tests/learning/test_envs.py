@@ -136,3 +136,16 @@ def test_seeded_resets_replay_and_unseeded_resets_continue():
     b = [env.reset(seed=11)[0] for _ in range(1)] + [env.reset()[0] for _ in range(3)]
     np.testing.assert_array_equal(np.stack(a), np.stack(b))
     assert len({tuple(v) for v in a}) == 4
+
+
+def test_complex_action_is_refused_naming_the_action():
+    """Issue 22 item 13: TaskEnv cast a complex action to float64 with only numpy's ComplexWarning."""
+    env = TaskEnv("PendulumSwingUp")
+    env.reset(seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no ComplexWarning on the way to the TypeError
+        with pytest.raises(TypeError, match="TaskEnv.step: action must be real numbers.*imaginary"):
+            env.step(np.array([0.5 + 1j]))
+    # a float64 beyond float32's range is clipped like any out-of-box action (as before)
+    _, _, _, trunc, info = env.step(np.array([1e39]))
+    assert not trunc and info == {}

@@ -347,3 +347,53 @@ def test_arguments_and_gym_ids():
         evaluate(feedback, "PendulumSwingUp", seeds=[], progress=False)
     with pytest.raises(TypeError):
         as_policy(42)
+
+
+def test_a_float64_action_beyond_float32_is_evaluated_as_the_env_applies_it():
+    """Issue 22 item 13: evaluate cast a float64 1e39 to inf before clipping (episode invalid after one step,
+    0 violations) while the envs clip it to the bound.  Reference: TaskEnv stepped by hand."""
+    seeds = [3, 4]
+    for policy in (lambda o: np.full((o.shape[0], 1), 1e39),  # numpy float64 (CallableAdapter)
+                   lambda o: torch.full((o.shape[0], 1), -1e300, dtype=torch.float64)):
+        res = evaluate(policy, "PendulumSwingUp", seeds=seeds, num_envs=2, dtype=torch.float32,
+                       progress=False, timing_batch1=False)
+        for i, s in enumerate(seeds):
+            env = TaskEnv("PendulumSwingUp", dtype=torch.float32)
+            obs, _ = env.reset(seed=s)
+            total, steps = 0.0, 0
+            for _ in range(env.task.max_episode_steps):
+                a = np.asarray(policy(torch.as_tensor(obs)[None]))[0]
+                obs, r, term, trunc, info = env.step(a)
+                total, steps = total + r, steps + 1
+                assert not info.get("invalid", False)
+                if term or trunc:
+                    break
+            x = torch.as_tensor(env.state)[None]
+            assert not res.invalid[i] and res.errors[i] == ""
+            assert res.length[i] == steps and res.violations[i] == steps
+            assert res.returns[i] == pytest.approx(total, rel=1e-5)
+            assert res.final_error[i] == pytest.approx(float(env.task.error(x)[0]), rel=1e-5, abs=1e-6)
+
+
+def test_a_complex_action_is_a_policy_error_not_a_real_part():
+    """Issue 22 item 13: complex actions lost their imaginary part silently; now the policy's error
+    (its episodes invalid, the message naming the action)."""
+    for policy in (lambda o: torch.full((o.shape[0], 1), 0.5 + 1j), lambda o: np.full((o.shape[0], 1), 0.5j)):
+        res = evaluate(policy, "PendulumSwingUp", seeds=[0, 1], num_envs=2, progress=False,
+                       timing_batch1=False)
+        assert res.invalid.all() and (res.length == 0).all()
+        assert all("TypeError" in e and "action must be real numbers" in e for e in res.errors)
+
+
+def test_counts_that_are_not_ints_are_refused_not_truncated():
+    """Issue 22 sweep: max_episode_steps=2.7 ran 2-step episodes and seeds=[1.5] ran seed 1, silently."""
+    for kw, name in ((dict(max_episode_steps=2.7), "max_episode_steps"), (dict(seeds=[1.5]), "seeds"),
+                     (dict(episodes=2.0), "episodes"), (dict(num_envs=1.5), "num_envs"),
+                     (dict(timing_steps=0.5), "timing_steps"), (dict(seeds=[-1]), "seeds")):
+        with pytest.raises(ValueError, match=f"evaluate: argument '{name}' must be an int"):
+            evaluate(feedback, "PendulumSwingUp", progress=False, timing_batch1=False, **kw)
+    with pytest.raises(ValueError, match="'device'"):
+        evaluate(feedback, "PendulumSwingUp", device="nonsense", progress=False)
+    r = evaluate(feedback, "PendulumSwingUp", seeds=[np.int64(3)], max_episode_steps=np.int32(2),
+                 progress=False, timing_batch1=False)  # numpy ints are ints
+    assert r.length.tolist() == [2]

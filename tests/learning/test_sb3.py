@@ -59,3 +59,15 @@ def test_ppo_sac_monitor_normalize_and_evaluate_policy():
 def test_adapter_refuses_an_env_with_the_wrong_mode():
     with pytest.raises(ValueError, match="SAME_STEP"):
         SB3VecEnv(learning.TaskVectorEnv("PendulumSwingUp", 2))
+
+
+def test_wrong_sized_actions_get_the_envs_error_naming_them():
+    """Issue 22 sweep: a wrong-sized action array failed in numpy's reshape, not naming the actions."""
+    env = SB3VecEnv("PendulumSwingUp", 2)
+    env.reset()
+    with pytest.raises(ValueError, match=r"actions must have shape \(2, 1\)"):
+        env.step(np.zeros(3, np.float32))
+    with pytest.raises(TypeError, match="actions must be real numbers"):
+        env.step(np.array([0.5j, 0.0]))
+    obs, *_ = env.step(np.zeros(2, np.float32))  # a flat (N,) action of a one-control task is fine
+    assert obs.shape == (2, 3)

@@ -331,3 +331,29 @@ def test_partial_reset_in_next_step_mode_restarts_only_the_masked_ones():
 def test_bad_compile_argument_is_refused():
     with pytest.raises(ValueError, match="compile"):
         TaskVectorEnv("PendulumSwingUp", 2, compile="fast")
+
+
+def test_complex_or_non_numeric_actions_are_refused_naming_the_actions():
+    """Issue 22 item 13: a complex action lost its imaginary part silently (numpy's ComplexWarning only)."""
+    env = TaskVectorEnv("PendulumSwingUp", 2)
+    env.reset(seed=0)
+    state = env.state
+    for bad in (np.array([[0.5 + 1j], [0.0]]), torch.tensor([[0.5 + 1j], [0.0]]), np.array([["a"], ["b"]])):
+        with pytest.raises(TypeError, match="TaskVectorEnv.step: actions must be real numbers"):
+            env.step(bad)
+    assert torch.equal(env.state, state)  # nothing was stepped
+    # integer and bool actions are real: accepted, as their float values
+    ref = TaskVectorEnv("PendulumSwingUp", 2)
+    ref.reset(seed=0)
+    o, *_ = env.step(np.array([[1], [0]]))
+    o2, *_ = ref.step(np.array([[1.0], [0.0]], np.float32))
+    np.testing.assert_array_equal(o, o2)
+
+
+def test_a_device_torch_cannot_use_is_refused_in_the_constructor(monkeypatch):
+    """Issue 22 item 12: device='cuda' on a CPU-only torch failed with torch's assertion deep inside."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)  # a CPU-only torch, on any machine
+    with pytest.raises(ValueError, match="'device'.*no CUDA"):
+        TaskVectorEnv("PendulumSwingUp", 2, device="cuda")
+    with pytest.raises(ValueError, match="'device'"):
+        TaskVectorEnv("PendulumSwingUp", 2, device="gpu0")
