@@ -27,8 +27,10 @@ the Δ_min of Algorithms 4–5) or a small relative cost decrease, and record th
 box QP with no descent direction returns a zero step, a large μ shrinks every step).  ``CONVERGED`` is
 reported only where the projected reduced gradient ``u − clip(u − ∇_u J)`` — the KKT residual of the
 control-limited problem, with ``∇_u J`` through the dynamics by the costates — is below
-:attr:`ILQROptions.tol_kkt` (relative) at the returned point; an element that stopped elsewhere is
-``STALLED``, and the residual itself is returned (:attr:`ILQRSolution.kkt_residual`).
+:attr:`ILQROptions.tol_kkt` relative to its scale (there: the gradient's terms plus the curvature times the
+controls, so that the test is scale-invariant and does not depend on how small ``R`` is) at the returned
+point; an element that stopped elsewhere is ``STALLED``, and the residual itself is returned
+(:attr:`ILQRSolution.kkt_residual`).
 
 Gradients (:class:`~controllers.problem.GradMode`). ``IMPLICIT`` (default): the solver runs without a
 graph; at the returned point ``z* = (x*, u*)`` with costates ``λ*`` the stationarity conditions ``∇_z
@@ -96,10 +98,22 @@ class ILQROptions:
             element stops (``STALLED`` unless certified, below); default by dtype.
         tol_cost: an accepted step that lowers the cost by less than ``tol_cost · |J|`` stops the element
             if the new point is certified (below); otherwise it goes on to a negligible step.
-        tol_kkt: the certificate behind ``CONVERGED``: the projected reduced gradient
-            ``max_t ‖u_t − clip(u_t − ∇_{u_t} J)‖∞`` (``∇_u J`` through the dynamics, by the costates
-            ``λ``) is at most ``tol_kkt`` times the largest of the terms ``|∂l/∂u_t| + |B_tᵀ λ_{t+1}|``
-            that cancel in it at a free optimum; checked at the returned point.  Default ``1e-6``
+        tol_kkt: the certificate behind ``CONVERGED``, checked at the returned point: the projected reduced
+            gradient ``max_t ‖u_t − clip(u_t − ∇_{u_t} J)‖∞`` (``∇_u J = ∂l/∂u_t + B_tᵀ λ_{t+1}`` through the
+            dynamics, by the costates ``λ``) is at most ``tol_kkt`` times the scale
+            ``max_t ‖|∂l/∂u_t| + |B_tᵀ λ_{t+1}|‖∞ + c · ‖u‖∞``, with ``c = max_t max_i |(Q_uu,t)_ii|`` the
+            curvature of the Riccati pass at that point (``Q_uu,t = H_uu,t + B_tᵀ V_{t+1} B_t``: the cost's
+            curvature in ``u_t`` with the later controls re-optimized, the pivots of the reduced Hessian).
+            Why both: the terms that cancel in the gradient at a free optimum balance ``2 R u`` there, so
+            they shrink with ``R``, while a negligible step ``k`` (``tol``, above) leaves a gradient of
+            about ``Q_uu k`` — the state cost's curvature, which does not.  Measured against the terms
+            alone the residual was unattainable for a small ``R`` (cookbook manipulator, ``R = 1e-6``:
+            ``|∇J|∞ = 4e-11``, ratio 1.8e-6 at an optimum; ``R = 1e-10``: most starts), and in floating
+            point the rounding of ``u`` alone moves the gradient by ``~ Q_uu ε ‖u‖``.  The ratio is
+            a backward error (that of a linear system, ``‖r‖ / (‖b‖ + ‖H‖ ‖x‖)``): invariant to scaling the
+            cost, attainable in floating point, and without ``R`` in it; the Riccati curvature (bounded
+            for a stabilizable linearization) rather than the open-loop Hessian, whose norm grows like
+            ``‖A‖^{2T}`` on an unstable system (1e18 on the cart-pole benchmark).  Default ``1e-6``
             (float64) or ``1e-3`` (lower precisions).
         mu_init, mu_min, mu_max, mu_factor: Levenberg-Marquardt regularization ``Q_uu + μ I`` with the
             schedule of Tassa et al. (μ below ``mu_min`` becomes 0; above ``mu_max`` the element fails).
@@ -250,8 +264,8 @@ class ILQRSolution:
         clamped: ``(*B, T, m)`` bool, controls on a bound with an active limit at the solution.
         cost_history: ``(iterations+1, *B)`` cost after each iteration (first row: initial guess).
         mu: ``(*B,)`` final regularization.
-        kkt_residual: ``(*B,)`` relative projected-gradient residual at the returned point
-            (:attr:`ILQROptions.tol_kkt`); ``CONVERGED`` exactly where it is at most ``tol_kkt``.
+        kkt_residual: ``(*B,)`` relative projected-gradient residual at the returned point, over the scale of
+            :attr:`ILQROptions.tol_kkt`; ``CONVERGED`` exactly where it is at most ``tol_kkt``.
     """
 
     x: Tensor
@@ -279,6 +293,7 @@ class _Backward:
     ok: Tensor  # (*B,)
     dV1: Tensor  # (*B,)  Σ kᵀ Q_u
     dV2: Tensor  # (*B,)  Σ ½ kᵀ Q_uu k
+    curv: Tensor  # (*B,)  max_t max_i |(Q_uu,t)_ii| (unregularized): the curvature of the certificate
 
 
 def _factor(H: Tensor) -> tuple[Tensor, Tensor]:
@@ -393,14 +408,16 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
         Ks_, frees_ = torch.stack(Ks).unsqueeze(-2), torch.stack(frees).unsqueeze(-1)
         dV1 = (ks_[..., 0] * torch.stack(Qus)).sum(0)
         dV2 = 0.5 * (ks_[..., 0] ** 2 * torch.stack(Quus)).sum(0)
+        curv = torch.stack(Quus).abs().amax(0)
     else:
         ks_, Ks_, frees_ = torch.stack(ks), torch.stack(Ks), torch.stack(frees)
         dV1 = (ks_ * torch.stack(Qus)).sum((0, -1))
         dV2 = 0.5 * (ks_ * (torch.stack(Quus) @ ks_.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
+        curv = torch.stack(Quus).diagonal(dim1=-2, dim2=-1).abs().amax((0, -1))
     ok = torch.stack(goods).gt(0).all(0) if scalar else torch.stack(goods).all(0)
     if scalar:
         ok = ok & torch.isfinite(ks_).all(0).squeeze(-1)
-    return _Backward(Ks_, ks_, frees_, ok, dV1, dV2)
+    return _Backward(Ks_, ks_, frees_, ok, dV1, dV2, curv)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -515,13 +532,14 @@ def _defaults(opts: ILQROptions, dtype: torch.dtype) -> tuple[float, float, floa
     return tol, tol_cost, tol_kkt
 
 
-def _kkt_residual(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: Tensor | None,
-                  hi: Tensor | None) -> Tensor:
-    """Relative projected reduced gradient ``(*B,)`` (:attr:`ILQROptions.tol_kkt`), time-major inputs.
+def _kkt_parts(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: Tensor | None,
+               hi: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``(max |pg|, max of the gradient's terms)`` per element ``(*B,)``, time-major inputs.
 
     ``∇_{u_t} J = ∂l/∂u_t + B_tᵀ λ_{t+1}`` with the costates ``λ_T = ∂l/∂x_T``,
-    ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}``; the residual is ``u − clip(u − ∇_u J, lo, hi)`` (zero exactly at a
-    KKT point of the box-constrained problem).  A non-finite element gives NaN (never certified).
+    ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}``; ``pg = u − clip(u − ∇_u J, lo, hi)`` (zero exactly at a KKT point of
+    the box-constrained problem) and the terms ``|∂l/∂u_t| + |B_tᵀ λ_{t+1}|`` that cancel in it at a free
+    optimum.  A non-finite element gives NaN (never certified).
     """
     T = u.shape[0]
     lam = gx[T]
@@ -533,8 +551,13 @@ def _kkt_residual(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: T
         lam = gx[t] + (A[t].mT @ lam.unsqueeze(-1)).squeeze(-1)
     g = torch.stack(grads)
     pg = g if lo is None else u - torch.minimum(torch.maximum(u - g, lo), hi)
-    scale = torch.stack(scales).abs().amax(dim=(0, -1)).clamp_min(torch.finfo(u.dtype).tiny)
-    return pg.abs().amax(dim=(0, -1)) / scale
+    return pg.abs().amax(dim=(0, -1)), torch.stack(scales).amax(dim=(0, -1))
+
+
+def _kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor) -> Tensor:
+    """The relative KKT residual ``max|pg| / (max terms + c · ‖u‖∞)`` (:attr:`ILQROptions.tol_kkt`);
+    ``curv`` is ``c``, the largest diagonal entry of the Riccati ``Q_uu,t`` (0: the terms alone, stricter)."""
+    return pg / (terms + curv * umax).clamp_min(torch.finfo(pg.dtype).tiny)
 
 
 def _bcast(v: Tensor | None, shape) -> Tensor | None:
@@ -673,12 +696,14 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         Hxx_tm = time_major(Hxx, 2, T + 1, nb)
         Hux_tm, Huu_tm = time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb)
         u_tm = u.movedim(-2, 0)
-        # the certificate at the current point decides how an element that stops here ends
-        cert = _kkt_residual(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm) <= tol_kkt
+        umax = u.abs().flatten(-2).amax(-1)
+        # the certificate at the current point decides how an element that stops here ends; before the
+        # backward pass it is judged on the gradient's terms alone (stricter: no curvature yet)
+        pg, terms = _kkt_parts(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm)
         # the last accepted step barely lowered the cost: done if certified here; otherwise keep taking
         # steps (a decrease below tol_cost·|J| can still leave a gradient well above tol_kkt on a flat
         # valley; Newton steps remove it) until the step itself is negligible
-        done = active & (ntiny >= 1) & cert
+        done = active & (ntiny >= 1) & (_kkt_relative(pg, terms, torch.zeros_like(pg), umax) <= tol_kkt)
         reason = torch.where(done, int(Reason.CONVERGED), reason)
         active = active & ~done
         if not bool(active.any()):
@@ -692,7 +717,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
             else:
                 k, ok, dV1, dV2 = _batch_step(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi,
                                               k_warm, bs)
-                K = None
+                K, bw = None, None
             fail = active & ~ok
             if not bool(fail.any()):
                 break
@@ -702,9 +727,15 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
             active = active & ~over
             if not bool((active & ~ok).any()):
                 break
+        # the certificate with the curvature of this point's Riccati pass (the batch formulation has none:
+        # the terms alone; the final certificate below has it for both)
+        curv = torch.zeros_like(pg) if bw is None else bw.curv
+        cert = _kkt_relative(pg, terms, curv, umax) <= tol_kkt
+        done = active & (ntiny >= 1) & cert
+        reason = torch.where(done, int(Reason.CONVERGED), reason)
+        active = active & ~done
         # Δ_min of Algorithms 4-5: the step is negligible -> converged if certified, else stalled
         kmax = k.abs().amax(dim=(0, -1))
-        umax = u.abs().flatten(-2).amax(-1)
         small = active & (kmax <= tol * (1 + umax))
         reason = torch.where(small, torch.where(cert, int(Reason.CONVERGED), int(Reason.STALLED)), reason)
         active = active & ~small
@@ -751,16 +782,17 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     A, B = trajectory_jacobians(dyn, x, u)
     gx, gu, Hxx, Hux, Huu = cost_derivatives(cost, x, u)
     u_tm = u.movedim(-2, 0)
-    kkt = _kkt_residual(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm).expand(bs)
+    dlo = None if lo is None else lo_tm - u_tm
+    dhi = None if hi is None else hi_tm - u_tm
+    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
+                        time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
+    pg, terms = _kkt_parts(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm)
+    kkt = _kkt_relative(pg, terms, bw.curv, u.abs().flatten(-2).amax(-1)).expand(bs)
     certified = kkt <= tol_kkt
     iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (
         reason == int(Reason.STALLED))
     reason = torch.where(iterative & certified, int(Reason.CONVERGED), reason)
     reason = torch.where((reason == int(Reason.CONVERGED)) & ~certified, int(Reason.STALLED), reason)
-    dlo = None if lo is None else lo_tm - u_tm
-    dhi = None if hi is None else hi_tm - u_tm
-    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
-                        time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
     K = bw.K.movedim(0, -3)
     free = bw.free.movedim(0, -2)
     kff = u - (K @ x[..., :T, :].unsqueeze(-1)).squeeze(-1)
