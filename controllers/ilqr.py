@@ -153,9 +153,14 @@ class ILQRProblem:
         x0: ``(*B, n)`` initial states.
         horizon: ``T``.
         u_lower, u_upper: control limits, ``None`` (unbounded), a float, or tensors broadcastable to
-            ``(*B, T, m)`` (e.g. ``(m,)``); ``±inf`` entries are unbounded.  Floats with
-            ``u_lower > u_upper`` are a ``ValueError``; tensors are checked per element by the solver
-            (``Reason.INFEASIBLE_BOUNDS``), so that building a problem never waits for the device.
+            ``(*B, T, m)`` (0-d, ``(m,)``, ``(T, m)``, ...: time dim 1 or ``T``, control dim 1 or ``m``,
+            else a ``ValueError`` naming the field and the expected shape); ``±inf`` entries are unbounded;
+            differentiable (a clamped control's derivative w.r.t. its limit is 1, and the rest of the plan
+            responds: :func:`ilqr`).  Floats with ``u_lower > u_upper`` are a ``ValueError``; crossed
+            tensor limits are checked per element by the solver (``Reason.INFEASIBLE_BOUNDS``, likewise a
+            lower limit of +inf or an upper of -inf), so that building a problem never waits for the device
+            on batched data.  NaN: a ``ValueError`` in a limit shared by the batch (a float, or a tensor
+            without batch dims, checked here), the element's ``NONFINITE_INPUT`` in a batched one.
     """
 
     dynamics: System
@@ -192,20 +197,37 @@ class ILQRProblem:
                 raise ValueError(f"{own}: dynamics has horizon {d.horizon} but the problem has {T}")
             if d.dtype != self.x0.dtype:
                 raise TypeError(f"{own}: dynamics dtype {d.dtype} differs from x0 dtype {self.x0.dtype}")
-        for name in ("u_lower", "u_upper"):
-            v = getattr(self, name)
-            if v is None:
-                continue
-            if isinstance(v, Tensor):
-                if v.dtype != self.x0.dtype:
-                    raise TypeError(f"{own}: field '{name}' has dtype {v.dtype}, x0 has {self.x0.dtype}")
-                if v.dim() == 0 or v.shape[-1] not in (1, m):
-                    raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, {m}), "
-                                     f"got {tuple(v.shape)}")
+        self._check_limits(own)
         self.batch_shape  # noqa: B018  (a ValueError naming the fields when they do not broadcast)
         lo, hi = self.u_lower, self.u_upper
         if isinstance(lo, (int, float)) and isinstance(hi, (int, float)) and lo > hi:
             raise ValueError(f"{own}: u_lower ({lo}) must be <= u_upper ({hi})")
+
+    def _check_limits(self, own: str) -> None:
+        """Limits: ``None``, a real number or a tensor broadcastable to ``(*B, T, m)`` (0-d included); a NaN
+        in a limit shared by the batch (a number, or a tensor without batch dims) is a ``ValueError`` here,
+        one in a batched limit the element's ``NONFINITE_INPUT`` (:func:`ilqr`)."""
+        T, m = self.horizon, self.m
+        for name in ("u_lower", "u_upper"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float, Tensor)):
+                raise TypeError(f"{own}: field '{name}' must be None, a real number or a tensor, "
+                                f"got {type(v).__name__}")
+            if not isinstance(v, Tensor):
+                if math.isnan(v):
+                    raise ValueError(f"{own}: field '{name}' is NaN (use ±inf for no limit)")
+                continue
+            if v.dtype != self.x0.dtype:
+                raise TypeError(f"{own}: field '{name}' has dtype {v.dtype}, x0 has {self.x0.dtype}")
+            if v.dim() > 0 and (v.shape[-1] not in (1, m) or (v.dim() > 1 and v.shape[-2] not in (1, T))):
+                want = (*self._batch_shape(limits=False), T, m)
+                raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, m) = {want} (time and "
+                                 f"control dims 1 or {T} and 1 or {m}), got {tuple(v.shape)}")
+            if v.dim() <= 2 and bool(torch.isnan(v).any()):
+                raise ValueError(f"{own}: field '{name}' (shared by the batch) has NaN entries "
+                                 "(use ±inf for no limit)")
 
     @property
     def n(self) -> int:
@@ -229,12 +251,15 @@ class ILQRProblem:
 
     @property
     def batch_shape(self) -> torch.Size:
+        return self._batch_shape(limits=True)
+
+    def _batch_shape(self, limits: bool) -> torch.Size:
         shapes = {"x0": self.x0.shape[:-1]}
         if isinstance(self.cost, QuadraticCost):
             shapes["cost"] = self.cost.batch_shape
         if isinstance(self.dynamics, LinearDynamics):
             shapes["dynamics"] = self.dynamics.batch_shape
-        for k in ("u_lower", "u_upper"):
+        for k in ("u_lower", "u_upper") if limits else ():
             v = getattr(self, k)
             if isinstance(v, Tensor) and v.dim() > 2:
                 shapes[k] = v.shape[:-2]
@@ -587,9 +612,14 @@ def ilqr(
         at most ``tol_kkt`` at the returned point), ``STALLED`` (stopped moving at a point that is not
         certified), ``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``
         (no μ up to ``mu_max`` gave a positive-definite ``Q_uu`` and a certified inner box QP),
-        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``: that element's trajectory, gains, cost and
-        KKT residual are NaN), ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper`` somewhere: NaN likewise) or
-        ``DIVERGED`` (the initial rollout is not finite).  Every other element is solved as if alone.
+        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``, NaN in a batched limit: that element's
+        trajectory, gains, cost and KKT residual are NaN), ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper``,
+        ``u_lower = +inf`` or ``u_upper = -inf`` somewhere: NaN likewise) or ``DIVERGED`` (the initial
+        rollout is not finite).  Every other element is solved as if alone.
+
+        Gradients reach the limits too (when they are tensors with a graph): a clamped control is held on
+        its limit in the implicit Newton step, so its derivative w.r.t. that limit is 1 and the free controls
+        and states respond through the step (``grad="unrolled"``: through the clipping of every iterate).
     """
     if not isinstance(problem, ILQRProblem):
         raise TypeError(f"ilqr: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
@@ -615,11 +645,14 @@ def ilqr(
     bad = ~torch.isfinite(x0).all(-1) | ~torch.isfinite(u_init).flatten(-2).all(-1)
     crossed = None
     if lo is not None:
-        # per element, no host sync: such an element is solved with open limits and returned as NaN
-        crossed = (lo > hi).flatten(-2).any(-1)
-        lo = torch.where(crossed[..., None, None], -math.inf, lo)
-        hi = torch.where(crossed[..., None, None], math.inf, hi)
-        bad = bad | crossed
+        # per element, no host sync: such an element is solved with open limits and returned as NaN; no
+        # finite control satisfies crossed limits, a lower limit of +inf or an upper one of -inf
+        nanlim = (torch.isnan(lo) | torch.isnan(hi)).flatten(-2).any(-1)
+        crossed = ((lo > hi) | (lo == math.inf) | (hi == -math.inf)).flatten(-2).any(-1) & ~nanlim
+        opened = (nanlim | crossed)[..., None, None]
+        lo = torch.where(opened, -math.inf, lo)
+        hi = torch.where(opened, math.inf, hi)
+        bad = bad | nanlim | crossed
     zero = torch.zeros((), **kw)
     x0s = torch.where(bad.unsqueeze(-1), zero, x0)
     u0 = _clip(torch.where(bad[..., None, None], zero, u_init), lo, hi)
@@ -638,7 +671,7 @@ def ilqr(
             out = tuple(v.clone() for v in out)
     x, u, K, kff, free, reason, iters, hist, mu, kkt = out
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
-        x, u = ilqr_implicit(problem, x0s, x, u, free, bs)
+        x, u = ilqr_implicit(problem, x0s, x, u, free, bs, lo, hi)
     with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
         cost = problem.cost.evaluate(x, u).expand(bs)
     nanv = torch.full((), math.nan, **kw)
