@@ -50,6 +50,7 @@ the implicit formula at their last iterate and are flagged in ``status`` — nev
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass
@@ -59,7 +60,7 @@ from torch import Tensor
 
 from controllers._validate import broadcast_batch, enum_arg, time_major
 from controllers.boxqp import box_qp, masked_hessian
-from controllers.costs import Cost, QuadraticCost, cost_derivatives
+from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, cost_derivatives
 from controllers.dynamics import (
     LinearDynamics,
     System,
@@ -70,7 +71,7 @@ from controllers.dynamics import (
 )
 from controllers.implicit import ilqr_implicit
 from controllers.lifted import transfer_matrices
-from controllers.problem import GradMode, Reason, SolverStatus
+from controllers.problem import GradMode, Reason, SolverStatus, cost_status_of
 
 __all__ = [
     "ILQRMethod",
@@ -585,6 +586,54 @@ def _kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor) -> Tens
     return pg / (terms + curv * umax).clamp_min(torch.finfo(pg.dtype).tiny)
 
 
+def _input_status(cost, x0: Tensor, u_init: Tensor, lo: Tensor | None, hi: Tensor | None, bs: torch.Size
+                  ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Per-element :class:`Reason` codes ``(*B,)`` from the inputs alone (0 where sound), and the limits
+    with those of failed elements opened (such an element is solved with open limits, zeros, and returned
+    as NaN; no host sync).  Precedence (the first failure is the one reported): ``NONFINITE_INPUT`` (NaN/inf
+    in ``x0``, ``u_init`` or a batched weight of a :class:`QuadraticCost`, NaN in a limit), then
+    ``INFEASIBLE_BOUNDS`` (crossed limits, a lower limit of +inf or an upper one of -inf: no finite
+    control satisfies them), then ``NOT_POSITIVE_DEFINITE`` (a batched weight that is not symmetric PSD /
+    PD: :func:`controllers._validate.check_weight`; a shared one was a ``ValueError`` already)."""
+    reason = torch.zeros(bs, dtype=torch.int64, device=x0.device)
+    base = cost.base if isinstance(cost, PeriodicQuadraticCost) else cost
+    nonfinite = ~torch.isfinite(x0).all(-1) | ~torch.isfinite(u_init).flatten(-2).all(-1)
+    if isinstance(base, QuadraticCost):
+        w = cost_status_of(base).expand(bs)
+        reason = torch.where(w == int(Reason.NOT_POSITIVE_DEFINITE), w, reason)
+        nonfinite = nonfinite | (w == int(Reason.NONFINITE_INPUT))
+    if lo is not None:
+        nonfinite = nonfinite | (torch.isnan(lo) | torch.isnan(hi)).flatten(-2).any(-1)
+        crossed = ((lo > hi) | (lo == math.inf) | (hi == -math.inf)).flatten(-2).any(-1)
+        reason = torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), reason)
+    reason = torch.where(nonfinite, int(Reason.NONFINITE_INPUT), reason)
+    if lo is not None:
+        opened = (reason != 0)[..., None, None]
+        lo, hi = torch.where(opened, -math.inf, lo), torch.where(opened, math.inf, hi)
+    return reason, lo, hi
+
+
+def _sanitized(cost, bad: Tensor):
+    """``cost`` with the batched fields of a :class:`QuadraticCost` (or a periodic one's base) replaced by
+    identity weights and zero terms in the elements that failed their input check, so that no NaN or
+    indefinite weight of one element reaches another's gradient (through a shared reference, say); such
+    an element is returned as NaN anyway.  Fields shared by the batch were validated at construction."""
+    base = cost.base if isinstance(cost, PeriodicQuadraticCost) else cost
+    if not isinstance(base, QuadraticCost):
+        return cost
+    fields = {}
+    for name, k in (("Q", 3), ("R", 3), ("N", 3), ("x_ref", 2), ("u_ref", 2), ("q", 2), ("r", 2)):
+        v = getattr(base, name)
+        if v is None or v.dim() == k:
+            continue
+        safe = torch.eye(v.shape[-1], dtype=v.dtype, device=v.device) if name in ("Q", "R") else 0.0
+        fields[name] = torch.where(bad.view(*bad.shape, *([1] * k)), safe, v)
+    if not fields:
+        return cost
+    base = dataclasses.replace(base, check=False, **fields)
+    return dataclasses.replace(cost, base=base) if isinstance(cost, PeriodicQuadraticCost) else base
+
+
 def _bcast(v: Tensor | None, shape) -> Tensor | None:
     return None if v is None else v.expand(shape)
 
@@ -612,10 +661,13 @@ def ilqr(
         at most ``tol_kkt`` at the returned point), ``STALLED`` (stopped moving at a point that is not
         certified), ``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``
         (no μ up to ``mu_max`` gave a positive-definite ``Q_uu`` and a certified inner box QP),
-        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``, NaN in a batched limit: that element's
-        trajectory, gains, cost and KKT residual are NaN), ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper``,
-        ``u_lower = +inf`` or ``u_upper = -inf`` somewhere: NaN likewise) or ``DIVERGED`` (the initial
-        rollout is not finite).  Every other element is solved as if alone.
+        ``NONFINITE_INPUT`` (NaN/inf in ``x0``, ``u_init`` or a batched weight of a ``QuadraticCost``, NaN
+        in a batched limit: that element's trajectory, gains, cost and KKT residual are NaN),
+        ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper``, ``u_lower = +inf`` or ``u_upper = -inf`` somewhere:
+        NaN likewise), ``NOT_POSITIVE_DEFINITE`` (a batched ``Q``/``R`` of a ``QuadraticCost`` not
+        symmetric PSD/PD for that element: NaN likewise) or ``DIVERGED`` (the initial rollout is not
+        finite).  An input failure is reported before anything the iteration finds (first failure wins).
+        Every other element is solved as if alone.
 
         Gradients reach the limits too (when they are tensors with a graph): a clamped control is held on
         its limit in the implicit Newton step, so its derivative w.r.t. that limit is 1 and the free controls
@@ -642,17 +694,9 @@ def ilqr(
     lo, hi = problem.bounds()
     lo, hi = _bcast(lo, (*bs, T, m)), _bcast(hi, (*bs, T, m))
     x0 = problem.x0.expand(*bs, n)
-    bad = ~torch.isfinite(x0).all(-1) | ~torch.isfinite(u_init).flatten(-2).all(-1)
-    crossed = None
-    if lo is not None:
-        # per element, no host sync: such an element is solved with open limits and returned as NaN; no
-        # finite control satisfies crossed limits, a lower limit of +inf or an upper one of -inf
-        nanlim = (torch.isnan(lo) | torch.isnan(hi)).flatten(-2).any(-1)
-        crossed = ((lo > hi) | (lo == math.inf) | (hi == -math.inf)).flatten(-2).any(-1) & ~nanlim
-        opened = (nanlim | crossed)[..., None, None]
-        lo = torch.where(opened, -math.inf, lo)
-        hi = torch.where(opened, math.inf, hi)
-        bad = bad | nanlim | crossed
+    inp, lo, hi = _input_status(problem.cost, x0, u_init, lo, hi, bs)
+    bad = inp != int(Reason.CONVERGED)
+    problem = dataclasses.replace(problem, cost=_sanitized(problem.cost, bad))
     zero = torch.zeros((), **kw)
     x0s = torch.where(bad.unsqueeze(-1), zero, x0)
     u0 = _clip(torch.where(bad[..., None, None], zero, u_init), lo, hi)
@@ -682,8 +726,7 @@ def ilqr(
     K = torch.where(b1.unsqueeze(-1), nanv, K)
     kff = torch.where(b1, nanv, kff)
     kkt = torch.where(bad, nanv, kkt)
-    if crossed is not None:
-        reason = torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), reason)
+    reason = torch.where(bad, inp, reason)  # the first failure wins: the inputs' own
     status = SolverStatus(converged=reason == int(Reason.CONVERGED), iterations=iters, reason=reason)
     return ILQRSolution(x=x, u=u, K=K, k=kff, cost=cost, status=status, clamped=~free, cost_history=hist,
                         mu=mu, kkt_residual=kkt)
