@@ -294,7 +294,7 @@ def solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool =
     ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.
     """
     n, m = A.shape[-1], B.shape[-1]
-    Bt = max(bs.numel(), 1)
+    Bt = bs.numel()  # 1 for an unbatched problem, 0 for an empty batch
     if stage is None:
         F, C, VT = assemble(A, B, c, Q, R, N, q, r, T, bs)
     else:  # cost part precomputed by the caller (controllers.riccati.prepare)

@@ -90,6 +90,39 @@ def check_symmetric(M: torch.Tensor, name: str, owner: str) -> None:
                          f"{asym:.3g}); symmetrize it with ({name} + {name}ᵀ)/2")
 
 
+def check_weight(M: torch.Tensor, name: str, owner: str, *, strict: bool, shared: bool
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The one rule for a cost weight ``M (..., k, k)`` (``Q``: symmetric PSD, ``strict=False``; ``R``:
+    symmetric PD, ``strict=True``), for every solver.
+
+    Returns ``(finite, sound)``, bools over the leading dims: every entry finite; symmetric (up to
+    ``1e3 ε`` of its largest entry, as :func:`check_symmetric`) and definite (:func:`psd_mask`).  With
+    ``shared=True`` (a weight without batch dims, the same for every element) a defect is the caller's
+    error: a ``ValueError`` naming the field (NaN/inf, not symmetric, not PSD/PD), checked in that order.
+    A batched weight never raises: the solver reports its elements (``NONFINITE_INPUT`` where not finite,
+    else ``NOT_POSITIVE_DEFINITE`` where not sound), so one bad element never stops the batch.
+    """
+    finite = all_finite(M, 2)
+    Md = M.detach()
+    safe = torch.where(finite[..., None, None], Md, torch.zeros((), dtype=Md.dtype, device=Md.device))
+    asym = (safe - safe.mT).abs().flatten(-2).amax(-1) if Md.numel() else torch.zeros(finite.shape,
+                                                                                        dtype=Md.dtype)
+    scale = safe.abs().flatten(-2).amax(-1).clamp_min(1.0) if Md.numel() else torch.ones_like(asym)
+    symmetric = asym <= 1e3 * torch.finfo(Md.dtype).eps * scale
+    sound = symmetric & psd_mask(Md, strict=strict)
+    if shared:
+        kind = "positive definite" if strict else "positive semi-definite"
+        if not bool(finite.all()):
+            raise ValueError(f"{owner}: field '{name}' has NaN or inf entries (a weight shared by the batch "
+                             "must be finite)")
+        if not bool(symmetric.all()):
+            raise ValueError(f"{owner}: field '{name}' must be symmetric (max |{name} - {name}ᵀ| = "
+                             f"{float(asym.max()):.3g}); symmetrize it with ({name} + {name}ᵀ)/2")
+        if not bool(sound.all()):
+            raise ValueError(f"{owner}: field '{name}' must be {kind} at every time step")
+    return finite, sound
+
+
 def all_finite(v: torch.Tensor, k: int) -> torch.Tensor:
     """``(...)`` bool over the leading dims: all of the last ``k`` dims finite.  ``max |v|`` is NaN or inf
     exactly when an entry is (amax propagates NaN), and is several times cheaper than ``isfinite().all()``."""

@@ -19,10 +19,12 @@ one double-backward per coordinate).  :class:`QuadraticCost` has exact analytic 
 :class:`ResidualCost` ``Σ f(x)ᵀQf(x) + uᵀRu`` has the Gauss–Newton ones (Eq. 104-105).
 
 Checks: shapes, dtypes and devices are validated at construction; an error names the field and the
-expected shape.  A non-symmetric Q/R is always an error.  Definiteness (Q ⪰ 0, R ≻ 0) is checked at
-construction when the matrix is shared by the whole batch (then a bad matrix is a ``ValueError``);
-when Q or R carries batch dims, :meth:`QuadraticCost.definite_mask` gives the per-element verdict and
-the solvers report the failing elements with ``Reason.NOT_POSITIVE_DEFINITE`` instead of raising.
+expected shape.  Weights follow one rule for every solver (:func:`controllers._validate.check_weight`):
+a Q or R shared by the whole batch (no batch dims) that has NaN/inf entries, is not symmetric, or is not
+PSD (Q) / PD (R) is a ``ValueError`` at construction; when Q or R carries batch dims,
+:meth:`QuadraticCost.finite_mask` and :meth:`QuadraticCost.definite_mask` give the per-element verdict
+and the solvers report the failing elements (``Reason.NONFINITE_INPUT``, else
+``Reason.NOT_POSITIVE_DEFINITE``) instead of raising.
 Nothing is memoized on a cost object: what a solver may reuse across solves is an explicit value the
 caller holds (:func:`controllers.riccati.prepare`).
 """
@@ -40,11 +42,10 @@ from torch import Tensor, nn
 from controllers._validate import (
     all_finite,
     batch_dims,
-    check_symmetric,
     check_tensor,
     check_time,
+    check_weight,
     expand_time_dim,
-    psd_mask,
     same_dtype_device,
     time_sum,
     timed,
@@ -158,12 +159,12 @@ class QuadraticCost:
         for k, v in opt.items():
             object.__setattr__(self, k, v)
         if self.check:
-            check_symmetric(Q, "Q", own)
-            check_symmetric(R, "R", own)
-            if Q.dim() == 3 and not bool(psd_mask(Q, strict=False).all()):
-                raise ValueError(f"{own}: field 'Q' must be positive semi-definite at every time step")
-            if R.dim() == 3 and not bool(psd_mask(R, strict=True).all()):
-                raise ValueError(f"{own}: field 'R' must be positive definite at every time step")
+            # shared weights (no batch dims): a defect is a ValueError; batched ones: per element
+            # (definite_mask / finite_mask, reported by the solvers)
+            if Q.dim() == 3:
+                check_weight(Q, "Q", own, strict=False, shared=True)
+            if R.dim() == 3:
+                check_weight(R, "R", own, strict=True, shared=True)
 
     # ---- properties
     @property
@@ -321,9 +322,12 @@ class QuadraticCost:
         return gx, gu, 2 * self.Q, Hux, 2 * self.R
 
     def definite_mask(self) -> torch.Tensor:
-        """``(*B,)`` bool: Q_t ⪰ 0 and R_t ≻ 0 at every time step of each batch element (computed on every
-        call; to reuse it across solves, hold the :func:`controllers.riccati.prepare` value)."""
-        return psd_mask(self.Q, strict=False).all(-1) & psd_mask(self.R, strict=True).all(-1)
+        """``(*B,)`` bool: Q_t symmetric ⪰ 0 and R_t symmetric ≻ 0 at every time step of each batch element
+        (:func:`controllers._validate.check_weight`; computed on every call; to reuse it across solves, hold
+        the :func:`controllers.riccati.prepare` value)."""
+        q = check_weight(self.Q, "Q", "QuadraticCost", strict=False, shared=False)[1]
+        r = check_weight(self.R, "R", "QuadraticCost", strict=True, shared=False)[1]
+        return q.all(-1) & r.all(-1)
 
     def finite_mask(self) -> torch.Tensor:
         """``(*B,)`` bool: every field of the element is finite."""

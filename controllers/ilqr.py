@@ -27,8 +27,10 @@ the Δ_min of Algorithms 4–5) or a small relative cost decrease, and record th
 box QP with no descent direction returns a zero step, a large μ shrinks every step).  ``CONVERGED`` is
 reported only where the projected reduced gradient ``u − clip(u − ∇_u J)`` — the KKT residual of the
 control-limited problem, with ``∇_u J`` through the dynamics by the costates — is below
-:attr:`ILQROptions.tol_kkt` (relative) at the returned point; an element that stopped elsewhere is
-``STALLED``, and the residual itself is returned (:attr:`ILQRSolution.kkt_residual`).
+:attr:`ILQROptions.tol_kkt` relative to its scale (there: the gradient's terms plus the curvature times the
+controls, so that the test is scale-invariant and does not depend on how small ``R`` is) at the returned
+point; an element that stopped elsewhere is ``STALLED``, and the residual itself is returned
+(:attr:`ILQRSolution.kkt_residual`).
 
 Gradients (:class:`~controllers.problem.GradMode`). ``IMPLICIT`` (default): the solver runs without a
 graph; at the returned point ``z* = (x*, u*)`` with costates ``λ*`` the stationarity conditions ``∇_z
@@ -48,6 +50,7 @@ the implicit formula at their last iterate and are flagged in ``status`` — nev
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass
@@ -57,7 +60,7 @@ from torch import Tensor
 
 from controllers._validate import broadcast_batch, enum_arg, time_major
 from controllers.boxqp import box_qp, masked_hessian
-from controllers.costs import Cost, QuadraticCost, cost_derivatives
+from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, cost_derivatives
 from controllers.dynamics import (
     LinearDynamics,
     System,
@@ -68,7 +71,7 @@ from controllers.dynamics import (
 )
 from controllers.implicit import ilqr_implicit
 from controllers.lifted import transfer_matrices
-from controllers.problem import GradMode, Reason, SolverStatus
+from controllers.problem import GradMode, Reason, SolverStatus, cost_status_of
 
 __all__ = [
     "ILQRMethod",
@@ -96,10 +99,22 @@ class ILQROptions:
             element stops (``STALLED`` unless certified, below); default by dtype.
         tol_cost: an accepted step that lowers the cost by less than ``tol_cost · |J|`` stops the element
             if the new point is certified (below); otherwise it goes on to a negligible step.
-        tol_kkt: the certificate behind ``CONVERGED``: the projected reduced gradient
-            ``max_t ‖u_t − clip(u_t − ∇_{u_t} J)‖∞`` (``∇_u J`` through the dynamics, by the costates
-            ``λ``) is at most ``tol_kkt`` times the largest of the terms ``|∂l/∂u_t| + |B_tᵀ λ_{t+1}|``
-            that cancel in it at a free optimum; checked at the returned point.  Default ``1e-6``
+        tol_kkt: the certificate behind ``CONVERGED``, checked at the returned point: the projected reduced
+            gradient ``max_t ‖u_t − clip(u_t − ∇_{u_t} J)‖∞`` (``∇_u J = ∂l/∂u_t + B_tᵀ λ_{t+1}`` through the
+            dynamics, by the costates ``λ``) is at most ``tol_kkt`` times the scale
+            ``max_t ‖|∂l/∂u_t| + |B_tᵀ λ_{t+1}|‖∞ + c · ‖u‖∞``, with ``c = max_t max_i |(Q_uu,t)_ii|`` the
+            curvature of the Riccati pass at that point (``Q_uu,t = H_uu,t + B_tᵀ V_{t+1} B_t``: the cost's
+            curvature in ``u_t`` with the later controls re-optimized, the pivots of the reduced Hessian).
+            Why both: the terms that cancel in the gradient at a free optimum balance ``2 R u`` there, so
+            they shrink with ``R``, while a negligible step ``k`` (``tol``, above) leaves a gradient of
+            about ``Q_uu k`` — the state cost's curvature, which does not.  Measured against the terms
+            alone the residual was unattainable for a small ``R`` (cookbook manipulator, ``R = 1e-6``:
+            ``|∇J|∞ = 4e-11``, ratio 1.8e-6 at an optimum; ``R = 1e-10``: most starts), and in floating
+            point the rounding of ``u`` alone moves the gradient by ``~ Q_uu ε ‖u‖``.  The ratio is
+            a backward error (that of a linear system, ``‖r‖ / (‖b‖ + ‖H‖ ‖x‖)``): invariant to scaling the
+            cost, attainable in floating point, and without ``R`` in it; the Riccati curvature (bounded
+            for a stabilizable linearization) rather than the open-loop Hessian, whose norm grows like
+            ``‖A‖^{2T}`` on an unstable system (1e18 on the cart-pole benchmark).  Default ``1e-6``
             (float64) or ``1e-3`` (lower precisions).
         mu_init, mu_min, mu_max, mu_factor: Levenberg-Marquardt regularization ``Q_uu + μ I`` with the
             schedule of Tassa et al. (μ below ``mu_min`` becomes 0; above ``mu_max`` the element fails).
@@ -139,9 +154,14 @@ class ILQRProblem:
         x0: ``(*B, n)`` initial states.
         horizon: ``T``.
         u_lower, u_upper: control limits, ``None`` (unbounded), a float, or tensors broadcastable to
-            ``(*B, T, m)`` (e.g. ``(m,)``); ``±inf`` entries are unbounded.  Floats with
-            ``u_lower > u_upper`` are a ``ValueError``; tensors are checked per element by the solver
-            (``Reason.INFEASIBLE_BOUNDS``), so that building a problem never waits for the device.
+            ``(*B, T, m)`` (0-d, ``(m,)``, ``(T, m)``, ...: time dim 1 or ``T``, control dim 1 or ``m``,
+            else a ``ValueError`` naming the field and the expected shape); ``±inf`` entries are unbounded;
+            differentiable (a clamped control's derivative w.r.t. its limit is 1, and the rest of the plan
+            responds: :func:`ilqr`).  Floats with ``u_lower > u_upper`` are a ``ValueError``; crossed
+            tensor limits are checked per element by the solver (``Reason.INFEASIBLE_BOUNDS``, likewise a
+            lower limit of +inf or an upper of -inf), so that building a problem never waits for the device
+            on batched data.  NaN: a ``ValueError`` in a limit shared by the batch (a float, or a tensor
+            without batch dims, checked here), the element's ``NONFINITE_INPUT`` in a batched one.
     """
 
     dynamics: System
@@ -178,20 +198,37 @@ class ILQRProblem:
                 raise ValueError(f"{own}: dynamics has horizon {d.horizon} but the problem has {T}")
             if d.dtype != self.x0.dtype:
                 raise TypeError(f"{own}: dynamics dtype {d.dtype} differs from x0 dtype {self.x0.dtype}")
-        for name in ("u_lower", "u_upper"):
-            v = getattr(self, name)
-            if v is None:
-                continue
-            if isinstance(v, Tensor):
-                if v.dtype != self.x0.dtype:
-                    raise TypeError(f"{own}: field '{name}' has dtype {v.dtype}, x0 has {self.x0.dtype}")
-                if v.dim() == 0 or v.shape[-1] not in (1, m):
-                    raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, {m}), "
-                                     f"got {tuple(v.shape)}")
+        self._check_limits(own)
         self.batch_shape  # noqa: B018  (a ValueError naming the fields when they do not broadcast)
         lo, hi = self.u_lower, self.u_upper
         if isinstance(lo, (int, float)) and isinstance(hi, (int, float)) and lo > hi:
             raise ValueError(f"{own}: u_lower ({lo}) must be <= u_upper ({hi})")
+
+    def _check_limits(self, own: str) -> None:
+        """Limits: ``None``, a real number or a tensor broadcastable to ``(*B, T, m)`` (0-d included); a NaN
+        in a limit shared by the batch (a number, or a tensor without batch dims) is a ``ValueError`` here,
+        one in a batched limit the element's ``NONFINITE_INPUT`` (:func:`ilqr`)."""
+        T, m = self.horizon, self.m
+        for name in ("u_lower", "u_upper"):
+            v = getattr(self, name)
+            if v is None:
+                continue
+            if isinstance(v, bool) or not isinstance(v, (int, float, Tensor)):
+                raise TypeError(f"{own}: field '{name}' must be None, a real number or a tensor, "
+                                f"got {type(v).__name__}")
+            if not isinstance(v, Tensor):
+                if math.isnan(v):
+                    raise ValueError(f"{own}: field '{name}' is NaN (use ±inf for no limit)")
+                continue
+            if v.dtype != self.x0.dtype:
+                raise TypeError(f"{own}: field '{name}' has dtype {v.dtype}, x0 has {self.x0.dtype}")
+            if v.dim() > 0 and (v.shape[-1] not in (1, m) or (v.dim() > 1 and v.shape[-2] not in (1, T))):
+                want = (*self._batch_shape(limits=False), T, m)
+                raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, m) = {want} (time and "
+                                 f"control dims 1 or {T} and 1 or {m}), got {tuple(v.shape)}")
+            if v.dim() <= 2 and bool(torch.isnan(v).any()):
+                raise ValueError(f"{own}: field '{name}' (shared by the batch) has NaN entries "
+                                 "(use ±inf for no limit)")
 
     @property
     def n(self) -> int:
@@ -215,12 +252,15 @@ class ILQRProblem:
 
     @property
     def batch_shape(self) -> torch.Size:
+        return self._batch_shape(limits=True)
+
+    def _batch_shape(self, limits: bool) -> torch.Size:
         shapes = {"x0": self.x0.shape[:-1]}
         if isinstance(self.cost, QuadraticCost):
             shapes["cost"] = self.cost.batch_shape
         if isinstance(self.dynamics, LinearDynamics):
             shapes["dynamics"] = self.dynamics.batch_shape
-        for k in ("u_lower", "u_upper"):
+        for k in ("u_lower", "u_upper") if limits else ():
             v = getattr(self, k)
             if isinstance(v, Tensor) and v.dim() > 2:
                 shapes[k] = v.shape[:-2]
@@ -250,8 +290,8 @@ class ILQRSolution:
         clamped: ``(*B, T, m)`` bool, controls on a bound with an active limit at the solution.
         cost_history: ``(iterations+1, *B)`` cost after each iteration (first row: initial guess).
         mu: ``(*B,)`` final regularization.
-        kkt_residual: ``(*B,)`` relative projected-gradient residual at the returned point
-            (:attr:`ILQROptions.tol_kkt`); ``CONVERGED`` exactly where it is at most ``tol_kkt``.
+        kkt_residual: ``(*B,)`` relative projected-gradient residual at the returned point, over the scale of
+            :attr:`ILQROptions.tol_kkt`; ``CONVERGED`` exactly where it is at most ``tol_kkt``.
     """
 
     x: Tensor
@@ -279,6 +319,7 @@ class _Backward:
     ok: Tensor  # (*B,)
     dV1: Tensor  # (*B,)  Σ kᵀ Q_u
     dV2: Tensor  # (*B,)  Σ ½ kᵀ Q_uu k
+    curv: Tensor  # (*B,)  max_t max_i |(Q_uu,t)_ii| (unregularized): the curvature of the certificate
 
 
 def _factor(H: Tensor) -> tuple[Tensor, Tensor]:
@@ -393,14 +434,16 @@ def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) 
         Ks_, frees_ = torch.stack(Ks).unsqueeze(-2), torch.stack(frees).unsqueeze(-1)
         dV1 = (ks_[..., 0] * torch.stack(Qus)).sum(0)
         dV2 = 0.5 * (ks_[..., 0] ** 2 * torch.stack(Quus)).sum(0)
+        curv = torch.stack(Quus).abs().amax(0)
     else:
         ks_, Ks_, frees_ = torch.stack(ks), torch.stack(Ks), torch.stack(frees)
         dV1 = (ks_ * torch.stack(Qus)).sum((0, -1))
         dV2 = 0.5 * (ks_ * (torch.stack(Quus) @ ks_.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
+        curv = torch.stack(Quus).diagonal(dim1=-2, dim2=-1).abs().amax((0, -1))
     ok = torch.stack(goods).gt(0).all(0) if scalar else torch.stack(goods).all(0)
     if scalar:
         ok = ok & torch.isfinite(ks_).all(0).squeeze(-1)
-    return _Backward(Ks_, ks_, frees_, ok, dV1, dV2)
+    return _Backward(Ks_, ks_, frees_, ok, dV1, dV2, curv)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -515,13 +558,14 @@ def _defaults(opts: ILQROptions, dtype: torch.dtype) -> tuple[float, float, floa
     return tol, tol_cost, tol_kkt
 
 
-def _kkt_residual(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: Tensor | None,
-                  hi: Tensor | None) -> Tensor:
-    """Relative projected reduced gradient ``(*B,)`` (:attr:`ILQROptions.tol_kkt`), time-major inputs.
+def _kkt_parts(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: Tensor | None,
+               hi: Tensor | None) -> tuple[Tensor, Tensor]:
+    """``(max |pg|, max of the gradient's terms)`` per element ``(*B,)``, time-major inputs.
 
     ``∇_{u_t} J = ∂l/∂u_t + B_tᵀ λ_{t+1}`` with the costates ``λ_T = ∂l/∂x_T``,
-    ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}``; the residual is ``u − clip(u − ∇_u J, lo, hi)`` (zero exactly at a
-    KKT point of the box-constrained problem).  A non-finite element gives NaN (never certified).
+    ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}``; ``pg = u − clip(u − ∇_u J, lo, hi)`` (zero exactly at a KKT point of
+    the box-constrained problem) and the terms ``|∂l/∂u_t| + |B_tᵀ λ_{t+1}|`` that cancel in it at a free
+    optimum.  A non-finite element gives NaN (never certified).
     """
     T = u.shape[0]
     lam = gx[T]
@@ -533,8 +577,61 @@ def _kkt_residual(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: T
         lam = gx[t] + (A[t].mT @ lam.unsqueeze(-1)).squeeze(-1)
     g = torch.stack(grads)
     pg = g if lo is None else u - torch.minimum(torch.maximum(u - g, lo), hi)
-    scale = torch.stack(scales).abs().amax(dim=(0, -1)).clamp_min(torch.finfo(u.dtype).tiny)
-    return pg.abs().amax(dim=(0, -1)) / scale
+    return pg.abs().amax(dim=(0, -1)), torch.stack(scales).amax(dim=(0, -1))
+
+
+def _kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor) -> Tensor:
+    """The relative KKT residual ``max|pg| / (max terms + c · ‖u‖∞)`` (:attr:`ILQROptions.tol_kkt`);
+    ``curv`` is ``c``, the largest diagonal entry of the Riccati ``Q_uu,t`` (0: the terms alone, stricter)."""
+    return pg / (terms + curv * umax).clamp_min(torch.finfo(pg.dtype).tiny)
+
+
+def _input_status(cost, x0: Tensor, u_init: Tensor, lo: Tensor | None, hi: Tensor | None, bs: torch.Size
+                  ) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    """Per-element :class:`Reason` codes ``(*B,)`` from the inputs alone (0 where sound), and the limits
+    with those of failed elements opened (such an element is solved with open limits, zeros, and returned
+    as NaN; no host sync).  Precedence (the first failure is the one reported): ``NONFINITE_INPUT`` (NaN/inf
+    in ``x0``, ``u_init`` or a batched weight of a :class:`QuadraticCost`, NaN in a limit), then
+    ``INFEASIBLE_BOUNDS`` (crossed limits, a lower limit of +inf or an upper one of -inf: no finite
+    control satisfies them), then ``NOT_POSITIVE_DEFINITE`` (a batched weight that is not symmetric PSD /
+    PD: :func:`controllers._validate.check_weight`; a shared one was a ``ValueError`` already)."""
+    reason = torch.zeros(bs, dtype=torch.int64, device=x0.device)
+    base = cost.base if isinstance(cost, PeriodicQuadraticCost) else cost
+    nonfinite = ~torch.isfinite(x0).all(-1) | ~torch.isfinite(u_init).flatten(-2).all(-1)
+    if isinstance(base, QuadraticCost):
+        w = cost_status_of(base).expand(bs)
+        reason = torch.where(w == int(Reason.NOT_POSITIVE_DEFINITE), w, reason)
+        nonfinite = nonfinite | (w == int(Reason.NONFINITE_INPUT))
+    if lo is not None:
+        nonfinite = nonfinite | (torch.isnan(lo) | torch.isnan(hi)).flatten(-2).any(-1)
+        crossed = ((lo > hi) | (lo == math.inf) | (hi == -math.inf)).flatten(-2).any(-1)
+        reason = torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), reason)
+    reason = torch.where(nonfinite, int(Reason.NONFINITE_INPUT), reason)
+    if lo is not None:
+        opened = (reason != 0)[..., None, None]
+        lo, hi = torch.where(opened, -math.inf, lo), torch.where(opened, math.inf, hi)
+    return reason, lo, hi
+
+
+def _sanitized(cost, bad: Tensor):
+    """``cost`` with the batched fields of a :class:`QuadraticCost` (or a periodic one's base) replaced by
+    identity weights and zero terms in the elements that failed their input check, so that no NaN or
+    indefinite weight of one element reaches another's gradient (through a shared reference, say); such
+    an element is returned as NaN anyway.  Fields shared by the batch were validated at construction."""
+    base = cost.base if isinstance(cost, PeriodicQuadraticCost) else cost
+    if not isinstance(base, QuadraticCost):
+        return cost
+    fields = {}
+    for name, k in (("Q", 3), ("R", 3), ("N", 3), ("x_ref", 2), ("u_ref", 2), ("q", 2), ("r", 2)):
+        v = getattr(base, name)
+        if v is None or v.dim() == k:
+            continue
+        safe = torch.eye(v.shape[-1], dtype=v.dtype, device=v.device) if name in ("Q", "R") else 0.0
+        fields[name] = torch.where(bad.view(*bad.shape, *([1] * k)), safe, v)
+    if not fields:
+        return cost
+    base = dataclasses.replace(base, check=False, **fields)
+    return dataclasses.replace(cost, base=base) if isinstance(cost, PeriodicQuadraticCost) else base
 
 
 def _bcast(v: Tensor | None, shape) -> Tensor | None:
@@ -564,9 +661,17 @@ def ilqr(
         at most ``tol_kkt`` at the returned point), ``STALLED`` (stopped moving at a point that is not
         certified), ``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (μ exceeded ``mu_max``), ``SINGULAR_QUU``
         (no μ up to ``mu_max`` gave a positive-definite ``Q_uu`` and a certified inner box QP),
-        ``NONFINITE_INPUT`` (NaN/inf in ``x0`` or ``u_init``: that element's trajectory, gains, cost and
-        KKT residual are NaN), ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper`` somewhere: NaN likewise) or
-        ``DIVERGED`` (the initial rollout is not finite).  Every other element is solved as if alone.
+        ``NONFINITE_INPUT`` (NaN/inf in ``x0``, ``u_init`` or a batched weight of a ``QuadraticCost``, NaN
+        in a batched limit: that element's trajectory, gains, cost and KKT residual are NaN),
+        ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper``, ``u_lower = +inf`` or ``u_upper = -inf`` somewhere:
+        NaN likewise), ``NOT_POSITIVE_DEFINITE`` (a batched ``Q``/``R`` of a ``QuadraticCost`` not
+        symmetric PSD/PD for that element: NaN likewise) or ``DIVERGED`` (the initial rollout is not
+        finite).  An input failure is reported before anything the iteration finds (first failure wins).
+        Every other element is solved as if alone.
+
+        Gradients reach the limits too (when they are tensors with a graph): a clamped control is held on
+        its limit in the implicit Newton step, so its derivative w.r.t. that limit is 1 and the free controls
+        and states respond through the step (``grad="unrolled"``: through the clipping of every iterate).
     """
     if not isinstance(problem, ILQRProblem):
         raise TypeError(f"ilqr: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
@@ -589,14 +694,9 @@ def ilqr(
     lo, hi = problem.bounds()
     lo, hi = _bcast(lo, (*bs, T, m)), _bcast(hi, (*bs, T, m))
     x0 = problem.x0.expand(*bs, n)
-    bad = ~torch.isfinite(x0).all(-1) | ~torch.isfinite(u_init).flatten(-2).all(-1)
-    crossed = None
-    if lo is not None:
-        # per element, no host sync: such an element is solved with open limits and returned as NaN
-        crossed = (lo > hi).flatten(-2).any(-1)
-        lo = torch.where(crossed[..., None, None], -math.inf, lo)
-        hi = torch.where(crossed[..., None, None], math.inf, hi)
-        bad = bad | crossed
+    inp, lo, hi = _input_status(problem.cost, x0, u_init, lo, hi, bs)
+    bad = inp != int(Reason.CONVERGED)
+    problem = dataclasses.replace(problem, cost=_sanitized(problem.cost, bad))
     zero = torch.zeros((), **kw)
     x0s = torch.where(bad.unsqueeze(-1), zero, x0)
     u0 = _clip(torch.where(bad[..., None, None], zero, u_init), lo, hi)
@@ -615,7 +715,7 @@ def ilqr(
             out = tuple(v.clone() for v in out)
     x, u, K, kff, free, reason, iters, hist, mu, kkt = out
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
-        x, u = ilqr_implicit(problem, x0s, x, u, free, bs)
+        x, u = ilqr_implicit(problem, x0s, x, u, free, bs, lo, hi)
     with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
         cost = problem.cost.evaluate(x, u).expand(bs)
     nanv = torch.full((), math.nan, **kw)
@@ -626,8 +726,7 @@ def ilqr(
     K = torch.where(b1.unsqueeze(-1), nanv, K)
     kff = torch.where(b1, nanv, kff)
     kkt = torch.where(bad, nanv, kkt)
-    if crossed is not None:
-        reason = torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), reason)
+    reason = torch.where(bad, inp, reason)  # the first failure wins: the inputs' own
     status = SolverStatus(converged=reason == int(Reason.CONVERGED), iterations=iters, reason=reason)
     return ILQRSolution(x=x, u=u, K=K, k=kff, cost=cost, status=status, clamped=~free, cost_history=hist,
                         mu=mu, kkt_residual=kkt)
@@ -673,12 +772,14 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         Hxx_tm = time_major(Hxx, 2, T + 1, nb)
         Hux_tm, Huu_tm = time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb)
         u_tm = u.movedim(-2, 0)
-        # the certificate at the current point decides how an element that stops here ends
-        cert = _kkt_residual(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm) <= tol_kkt
+        umax = u.abs().flatten(-2).amax(-1)
+        # the certificate at the current point decides how an element that stops here ends; before the
+        # backward pass it is judged on the gradient's terms alone (stricter: no curvature yet)
+        pg, terms = _kkt_parts(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm)
         # the last accepted step barely lowered the cost: done if certified here; otherwise keep taking
         # steps (a decrease below tol_cost·|J| can still leave a gradient well above tol_kkt on a flat
         # valley; Newton steps remove it) until the step itself is negligible
-        done = active & (ntiny >= 1) & cert
+        done = active & (ntiny >= 1) & (_kkt_relative(pg, terms, torch.zeros_like(pg), umax) <= tol_kkt)
         reason = torch.where(done, int(Reason.CONVERGED), reason)
         active = active & ~done
         if not bool(active.any()):
@@ -692,7 +793,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
             else:
                 k, ok, dV1, dV2 = _batch_step(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi,
                                               k_warm, bs)
-                K = None
+                K, bw = None, None
             fail = active & ~ok
             if not bool(fail.any()):
                 break
@@ -702,9 +803,15 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
             active = active & ~over
             if not bool((active & ~ok).any()):
                 break
+        # the certificate with the curvature of this point's Riccati pass (the batch formulation has none:
+        # the terms alone; the final certificate below has it for both)
+        curv = torch.zeros_like(pg) if bw is None else bw.curv
+        cert = _kkt_relative(pg, terms, curv, umax) <= tol_kkt
+        done = active & (ntiny >= 1) & cert
+        reason = torch.where(done, int(Reason.CONVERGED), reason)
+        active = active & ~done
         # Δ_min of Algorithms 4-5: the step is negligible -> converged if certified, else stalled
         kmax = k.abs().amax(dim=(0, -1))
-        umax = u.abs().flatten(-2).amax(-1)
         small = active & (kmax <= tol * (1 + umax))
         reason = torch.where(small, torch.where(cert, int(Reason.CONVERGED), int(Reason.STALLED)), reason)
         active = active & ~small
@@ -751,16 +858,17 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     A, B = trajectory_jacobians(dyn, x, u)
     gx, gu, Hxx, Hux, Huu = cost_derivatives(cost, x, u)
     u_tm = u.movedim(-2, 0)
-    kkt = _kkt_residual(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm).expand(bs)
+    dlo = None if lo is None else lo_tm - u_tm
+    dhi = None if hi is None else hi_tm - u_tm
+    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
+                        time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
+    pg, terms = _kkt_parts(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm)
+    kkt = _kkt_relative(pg, terms, bw.curv, u.abs().flatten(-2).amax(-1)).expand(bs)
     certified = kkt <= tol_kkt
     iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (
         reason == int(Reason.STALLED))
     reason = torch.where(iterative & certified, int(Reason.CONVERGED), reason)
     reason = torch.where((reason == int(Reason.CONVERGED)) & ~certified, int(Reason.STALLED), reason)
-    dlo = None if lo is None else lo_tm - u_tm
-    dhi = None if hi is None else hi_tm - u_tm
-    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
-                        time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
     K = bw.K.movedim(0, -3)
     free = bw.free.movedim(0, -2)
     kff = u - (K @ x[..., :T, :].unsqueeze(-1)).squeeze(-1)

@@ -236,14 +236,30 @@ def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, fused: bool
 # --------------------------------------------------------------------------------------------------
 
 
+def _bound_motion(u: torch.Tensor, free: torch.Tensor, lo: torch.Tensor | None,
+                  hi: torch.Tensor | None) -> torch.Tensor | None:
+    """``(*B, T, m)``, zero in value: ``b - sg(b)`` on the clamped controls, ``b`` the limit each sits on
+    (the nearer one: never a midpoint of possibly infinite limits), zero on the free ones; None when no limit
+    has a graph.  Its derivative is the identity from a clamped control's limit to that control."""
+    if lo is None or not (lo.requires_grad or hi.requires_grad):
+        return None
+    clamped = ~free
+    at_hi = clamped & ((hi - u).abs() < (u - lo).abs())  # an infinite limit is never the nearer one
+    b = torch.where(clamped, torch.where(at_hi, hi, lo), u)
+    return b - b.detach()
+
+
 def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, free: torch.Tensor,
-                  bs: torch.Size):
+                  bs: torch.Size, lo: torch.Tensor | None = None, hi: torch.Tensor | None = None):
     """Give iLQR's solution ``x, u`` of ``problem`` (an :class:`~controllers.ilqr.ILQRProblem`) the implicit
     derivatives of its KKT conditions (:mod:`controllers.ilqr` docstring).
 
     ``x + (δx - sg(δx))`` where ``δx`` is the Newton step on the KKT system (≈ 0 at a stationary point):
     the value is unchanged and the derivative is ``-K⁻¹ ∂F/∂θ``.  Clamped controls are fixed on their
-    bounds (their stationarity rows are replaced by ``δu = 0``).
+    bounds: their stationarity rows are replaced by ``δu = δb`` with ``b`` the limit they sit on
+    (``lo``/``hi``, ``(*B, T, m)``, differentiable), so ``∂u_c/∂b = 1`` and the free controls and states
+    respond through the same Newton step (``δb`` drives the linearized dynamics through ``B`` and the
+    stationarity of the free controls through the Hessian's cross terms).
     """
     dyn, cost = problem.dynamics, problem.cost
     T, n, m = problem.T, problem.n, problem.m
@@ -265,11 +281,21 @@ def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
         c0 = x0 - xs[..., 0, :]
         L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * cdyn).sum() + (lam[..., 0, :] * c0).sum()
         rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
-        if not any(v.requires_grad for v in (c0, cdyn)) and not _depends_on_params(rx, ru, xs, us):
+        db = _bound_motion(u, free, lo, hi)
+        moved = db is not None or any(v.requires_grad for v in (c0, cdyn))
+        if not moved and not _depends_on_params(rx, ru, xs, us):
             return x, u
         Hxx, Hxu, Huu = hessian_rows(rx, ru, xs, us, n, m)
         fm = free.to(x.dtype)
-        Bm = B.movedim(0, -3) * fm.unsqueeze(-2)
+        Bf = B.movedim(0, -3)
+        if db is not None:
+            # the clamped controls move with their limits: a drift of the linearized dynamics and linear
+            # terms in the stationarity of the states and of the free controls
+            cdyn = cdyn + (Bf @ db.unsqueeze(-1)).squeeze(-1)
+            hxu = (Hxu[..., :T, :, :] @ db.unsqueeze(-1)).squeeze(-1)
+            rx = rx + torch.cat([hxu, torch.zeros_like(hxu[..., :1, :])], -2)
+            ru = ru + (Huu @ db.unsqueeze(-1)).squeeze(-1)
+        Bm = Bf * fm.unsqueeze(-2)
         # the Newton step's LQ problem: coefficients of the Lagrangian's second-order model (clamped
         # controls fixed on their bounds: their rows and columns masked out)
         Q, R, N, q, r = lq_coefficients(rx, ru * fm, Hxx, (Hxu[..., :T, :, :] * fm.unsqueeze(-2)).mT,
@@ -277,7 +303,8 @@ def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
         A = A.movedim(0, -3).expand(*bs, T, n, n)
         dx, du, *_ = lqr_implicit(A, Bm, cdyn, Q, R, N, q, r, c0, T, bs)
         dx, du = dx.reshape(*bs, T + 1, n), du.reshape(*bs, T, m)
-    return x + (dx - dx.detach()), u + (du - du.detach())
+    u = u + (du - du.detach())
+    return x + (dx - dx.detach()), u if db is None else u + db
 
 
 def _depends_on_params(rx: torch.Tensor, ru: torch.Tensor, xs: torch.Tensor, us: torch.Tensor) -> bool:

@@ -43,8 +43,44 @@ def _rollout_cost(sys_, cost, x0, u):
     return cost.evaluate(torch.stack(xs, -2), u)
 
 
-def _independent_kkt(sys_, cost, x0, u, umax):
-    """Relative projected gradient, computed by autograd through a rollout (not by the solver)."""
+def _schur_curvature(step, cost, x0, u, free):
+    """``max_t max_i |(Q_uu,t)_ii|`` by dense linear algebra: the Gauss-Newton Hessian of the shooting cost
+    ``H = Sᵀ H_xx S + H_uu`` (``S = ∂x/∂u`` by autograd through a rollout) and, per step, the Schur complement
+    of the later free controls in ``H`` (the curvature in ``u_t`` with the later controls re-optimized)."""
+    B, T, m = u.shape
+    out = []
+    for b in range(B):
+        def roll(v, b=b):
+            xs = [x0[b]]
+            for t in range(T):
+                xs.append(step(xs[-1], v[t], t))
+            return torch.stack(xs)
+        S = torch.autograd.functional.jacobian(roll, u[b].detach())  # (T+1, n, T, m)
+        n = S.shape[1]
+        S = S.reshape((T + 1) * n, T * m)
+        with torch.no_grad():
+            xs = roll(u[b].detach())
+            _, _, Hxx, _, Huu = cost.derivatives(xs[None], u[b:b + 1].detach())
+        Hxx = Hxx.expand(1, T + 1, n, n)[0] if Hxx.dim() == 4 else Hxx.expand(T + 1, n, n)
+        Huu = Huu.expand(1, T, m, m)[0] if Huu.dim() == 4 else Huu.expand(T, m, m)
+        H = S.mT @ torch.block_diag(*Hxx) @ S + torch.block_diag(*Huu)
+        f = free[b].reshape(-1)
+        best = torch.zeros((), dtype=u.dtype)
+        for t in range(T):
+            it = torch.arange(t * m, (t + 1) * m)
+            later = torch.nonzero(f & (torch.arange(T * m) >= (t + 1) * m)).flatten()
+            Q = H[it][:, it]
+            if later.numel():
+                Q = Q - H[it][:, later] @ torch.linalg.solve(H[later][:, later], H[later][:, it])
+            best = torch.maximum(best, Q.diagonal().abs().max())
+        out.append(best)
+    return torch.stack(out)
+
+
+def _independent_kkt(sys_, cost, x0, u, umax, free=None):
+    """Relative projected gradient, computed by autograd through a rollout (not by the solver): the projected
+    gradient over the gradient's terms plus the curvature times the controls (ILQROptions.tol_kkt); with
+    ``free=None`` the terms alone (a stricter scale)."""
     u = u.detach().clone().requires_grad_(True)
     (total,) = torch.autograd.grad(_rollout_cost(sys_, cost, x0, u).sum(), u)
     # the cost's own partial w.r.t. u (x held fixed); the rest is the costate term B_tᵀ λ_{t+1}
@@ -53,8 +89,10 @@ def _independent_kkt(sys_, cost, x0, u, umax):
         for t in range(u.shape[-2]):
             xs.append(sys_.step(xs[-1], u[..., t, :], t))
     (partial,) = torch.autograd.grad(cost.evaluate(torch.stack(xs, -2), u).sum(), u)
-    pg = u - torch.clamp(u - total, -umax, umax)
+    pg = total if umax is None else u - torch.clamp(u - total, -umax, umax)
     scale = (partial.abs() + (total - partial).abs()).flatten(-2).amax(-1)
+    if free is not None:
+        scale = scale + _schur_curvature(sys_.step, cost, x0, u, free) * u.detach().abs().flatten(-2).amax(-1)
     return (pg.abs().flatten(-2).amax(-1) / scale).detach()
 
 
@@ -63,7 +101,8 @@ def test_converged_means_kkt_residual_below_tolerance(method):
     sys_, cost, x0, umax = _swingup()
     sol = ilqr(ILQRProblem(sys_, cost, x0, T, -umax, umax), method=method, grad="none",
                options=ILQROptions(max_iter=150))
-    kkt = _independent_kkt(sys_, cost, x0, sol.u, umax)
+    assert bool((sol.mu == 0).all())  # (the Riccati curvature is then the unregularized Schur complement)
+    kkt = _independent_kkt(sys_, cost, x0, sol.u, umax, ~sol.clamped)
     # the solver's reported residual is the independent one
     torch.testing.assert_close(sol.kkt_residual, kkt, atol=1e-12, rtol=1e-6)
     conv = sol.status.converged
@@ -89,10 +128,10 @@ def test_a_stall_is_not_reported_as_converged(method):
     sys_, cost, x0, umax = _swingup(B=3)
     sol = ilqr(ILQRProblem(sys_, cost, x0, T, -umax, umax), method=method, grad="none",
                options=ILQROptions(mu_init=1e12, mu_max=1e14, max_iter=3))
-    kkt = _independent_kkt(sys_, cost, x0, sol.u, umax)
+    kkt = _independent_kkt(sys_, cost, x0, sol.u, umax)  # the terms alone: a stricter scale
     assert sol.status.reason_names() == ["STALLED"] * 3
     assert bool((kkt > 1e-2).all())
-    torch.testing.assert_close(sol.kkt_residual, kkt, atol=1e-12, rtol=1e-6)
+    assert bool((sol.kkt_residual > 1e-3).all())
 
 
 def test_max_iterations_at_a_certified_point_is_converged_and_vice_versa():
@@ -102,5 +141,59 @@ def test_max_iterations_at_a_certified_point_is_converged_and_vice_versa():
     for cap in (2, 200):
         sol = ilqr(ILQRProblem(sys_, cost, x0, T, -umax, umax), grad="none",
                    options=ILQROptions(max_iter=cap))
-        kkt = _independent_kkt(sys_, cost, x0, sol.u, umax)
+        kkt = _independent_kkt(sys_, cost, x0, sol.u, umax, ~sol.clamped)
         np.testing.assert_array_equal(sol.status.converged.numpy(), (kkt <= 1e-6).numpy())
+
+
+def _cookbook_arm(R: float, starts: int):
+    """The cookbook's iLQR manipulator (seed 004 §8-9, RCFS iLQR_manipulator_recursive): three links of
+    lengths 2, 2, 1 under velocity commands (x_{t+1} = x_t + Δt u_t, Δt = 0.01, T = 49), end-effector pose
+    (position and angle) at two via points t = 24 and 49, identity precision, control weight R·I, from
+    perturbed starts around x0 = (3π/4, -π/2, -π/4)."""
+    from controllers.costs import ResidualCost
+    from controllers.dynamics import LinearDynamics
+
+    lengths = torch.tensor([2.0, 2.0, 1.0], dtype=D)
+    Tm = 49
+
+    def fk(x):
+        c = torch.cumsum(x, -1)
+        xy = [(lengths * torch.cos(c)).sum(-1), (lengths * torch.sin(c)).sum(-1)]
+        return torch.stack([*xy, c[..., -1]], -1)
+
+    mu = torch.zeros(Tm + 1, 3, dtype=D)
+    mu[24] = torch.tensor([2.0, 1.0, -math.pi / 6], dtype=D)
+    mu[49] = torch.tensor([3.0, 1.0, -math.pi / 3], dtype=D)
+    Q = torch.zeros(Tm + 1, 3, 3, dtype=D)
+    Q[24] = Q[49] = torch.eye(3, dtype=D)
+
+    def residual(x):
+        e = fk(x) - mu
+        return torch.cat([e[..., :2], torch.remainder(e[..., 2:] + math.pi, 2 * math.pi) - math.pi], -1)
+
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.tensor([3 * math.pi / 4, -math.pi / 2, -math.pi / 4], dtype=D) + 0.3 * torch.randn(
+        starts, 3, generator=g, dtype=D)
+    dyn = LinearDynamics(torch.eye(3, dtype=D), 0.01 * torch.eye(3, dtype=D))
+    return dyn, ResidualCost(residual, Q, R * torch.eye(3, dtype=D)), x0, Tm
+
+
+@pytest.mark.parametrize("R", [1e-6, 1e-10])
+def test_certificate_does_not_depend_on_how_small_R_is(R):
+    """Issue 22 item 5: batch iLQR stopped at |∇J|∞ ≈ 4e-11 on the cookbook manipulator (R = 1e-6) with a
+    relative residual of 1.8e-6 over the gradient's terms alone (20 of 64 starts STALLED on main; at
+    R = 1e-10, 57 of 64), because those terms shrink with R at the optimum while the gradient a negligible
+    step leaves behind does not.  With the curvature in the scale both formulations certify every start,
+    and the certified points are optima: the independent residual (autograd through a rollout, dense
+    Schur complements) agrees, the two formulations reach the same controls, and the unscaled gradient
+    is at the round-off level of the curvature."""
+    dyn, cost, x0, Tm = _cookbook_arm(R, 16)
+    sols = {m: ilqr(ILQRProblem(dyn, cost, x0, Tm), method=m, grad="none") for m in ("recursive", "batch")}
+    for m, sol in sols.items():
+        assert sol.status.reason_names() == ["CONVERGED"] * 16, m
+        free = torch.ones_like(sol.u, dtype=torch.bool)
+        kkt = _independent_kkt(dyn, cost, x0, sol.u, None, free)
+        torch.testing.assert_close(sol.kkt_residual, kkt, atol=1e-12, rtol=1e-5)
+        assert bool((kkt <= 1e-6).all())
+    torch.testing.assert_close(sols["recursive"].u, sols["batch"].u, atol=1e-5, rtol=0)
+    torch.testing.assert_close(sols["recursive"].cost, sols["batch"].cost, atol=1e-14, rtol=1e-9)
