@@ -165,14 +165,14 @@ class LQRFunction(torch.autograd.Function):
         Bflat = F[..., :n, :m]
         cost = ((Q, 2), (R, 2), (N, 2), (q, 1), (r, 1))
         fl = [None if v is None else _k.flat(v, bs, k) for v, k in cost]
-        ctx.save_for_backward(x, u, fac.Kt, fac.Huu, fac.V, F, Bflat, *fl)
+        ctx.save_for_backward(x, u, fac.Kt, fac.Huu, fac.V, F, Bflat, fac.ok, *fl)
         ctx.mark_non_differentiable(K, k, fac.ok)
         ctx.Bt = Bt
         return x, u, J, K, k, fac.ok
 
     @staticmethod
     def backward(ctx, gx, gu, gJ, _gK, _gk, _ginfo):
-        x, u, Kt, Huu, V, F, Bm, Q, R, N, q, r = ctx.saved_tensors
+        x, u, Kt, Huu, V, F, Bm, ok, Q, R, N, q, r = ctx.saved_tensors
         T, n, m, Bt, bs = ctx.T, ctx.n, ctx.m, ctx.Bt, ctx.bs
         dt, dev = x.dtype, x.device
         gx = torch.zeros(Bt, T + 1, n, dtype=dt, device=dev) if gx is None else gx
@@ -189,9 +189,13 @@ class LQRFunction(torch.autograd.Function):
         x, u, lam = _refine(Phi, A, Bm, K, L, P, Q, R, N, q, r, x, u, steps)
         dx, du, _ = adjoint_solve(Phi, Bm, K, L, P, -gx, -gu)
         dx, du, dlam = _refine(Phi, A, Bm, K, L, P, Q, R, N, -gx, -gu, dx, du, steps)
-        gJ1 = gJ[:, None, None]
-        ex = -dx + gJ1 * x
-        eu = -du + gJ1 * u
+        # an element whose H_uu was not positive definite (SINGULAR_QUU) has no gradient: its factors are
+        # garbage, and 0·NaN would reach the summed gradient of a shared parameter; it contributes zero
+        good = ok.all(-1)[:, None, None]
+        x, u, lam, dlam = (torch.where(good, v, 0.0) for v in (x, u, lam, dlam))
+        gJ1 = torch.where(good, gJ[:, None, None], 0.0)
+        ex = torch.where(good, -dx + gJ1 * x, 0.0)
+        eu = torch.where(good, -du + gJ1 * u, 0.0)
         el = -dlam[:, 1:] + gJ1 * lam[:, 1:]
         needs = ctx.needs_input_grad
         out = [None] * 12
@@ -221,7 +225,7 @@ class LQRFunction(torch.autograd.Function):
         if needs[7]:
             out[7] = fit(eu + gJ1 * u, 7, 1)
         if needs[8]:
-            g0 = -dlam[:, 0] + 2 * gJ[:, None] * lam[:, 0]
+            g0 = -dlam[:, 0] + 2 * gJ1[:, 0] * lam[:, 0]
             out[8] = g0.reshape(*bs, n).sum_to_size(ctx.shapes[8])
         return tuple(out)
 

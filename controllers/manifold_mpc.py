@@ -74,7 +74,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from controllers._validate import all_finite, broadcast_batch, check_symmetric, enum_arg, psd_mask
+from controllers._validate import all_finite, broadcast_batch, check_weight, enum_arg
 from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
@@ -374,27 +374,21 @@ def _weight(W, size: int, name: str, fn: str) -> Tensor:
 
 
 def _checked_weight(W, size: int, name: str, fn: str, strict: bool) -> Tensor:
-    """:func:`_weight`, validated by the rule of :mod:`controllers.costs`: a non-symmetric weight is always a
-    ``ValueError``; a weight shared by the batch (no batch dims) must be finite and positive
-    (semi-)definite (``strict``: definite), else ``ValueError``; batched weights are checked per element at
-    solve time (:func:`_weight_reason`)."""
+    """:func:`_weight`, validated by the one weight rule of every solver
+    (:func:`controllers._validate.check_weight`): a weight shared by the batch (no batch dims) that is not
+    finite and symmetric positive (semi-)definite (``strict``: definite) is a ``ValueError`` naming it;
+    batched weights are checked per element at solve time (:func:`_weight_reason`)."""
     W = _weight(W, size, name, fn)
-    check_symmetric(W, name, fn)
-    if W.dim() == 2:
-        if not bool(all_finite(W, 2)):
-            raise ValueError(f"{fn}: argument '{name}' must be finite, got a NaN/inf entry")
-        if not bool(psd_mask(W, strict=strict)):
-            kind = "positive definite" if strict else "positive semi-definite"
-            raise ValueError(f"{fn}: argument '{name}' must be symmetric {kind}, got eigenvalues "
-                             f"{torch.linalg.eigvalsh(W.detach()).tolist()}")
+    check_weight(W, name, fn, strict=strict, shared=W.dim() == 2)
     return W
 
 
 def _weight_reason(W: Tensor, strict: bool) -> tuple[Tensor, Tensor]:
     """A batched weight ``(*Bw, k, k)`` with its failing elements replaced by the identity, and the
-    ``(*Bw,)`` :class:`Reason` codes (``NONFINITE_INPUT``, ``NOT_POSITIVE_DEFINITE`` or 0)."""
-    fin = all_finite(W, 2)
-    good = fin & psd_mask(W, strict=strict)
+    ``(*Bw,)`` :class:`Reason` codes (``NONFINITE_INPUT``, ``NOT_POSITIVE_DEFINITE`` — not symmetric
+    positive (semi-)definite — or 0)."""
+    fin, sound = check_weight(W, "W", "ErrorStateMPC", strict=strict, shared=False)
+    good = fin & sound
     reason = torch.where(fin, torch.where(good, 0, int(Reason.NOT_POSITIVE_DEFINITE)),
                          int(Reason.NONFINITE_INPUT))
     eye = torch.eye(W.shape[-1], dtype=W.dtype, device=W.device)
@@ -450,11 +444,11 @@ class ErrorStateMPC:
         system: a :class:`ManifoldSystem`.
         horizon: N.
         Q, R: stage weights, ``(n,)``/``(m,)`` diagonals or ``(*B, n, n)``/``(*B, m, m)`` matrices (Q PSD,
-            R PD); P: terminal weight (default Q).  Checked as :mod:`controllers.costs` checks a
-            :class:`~controllers.costs.QuadraticCost`: a non-symmetric weight is a ``ValueError``; a weight
-            without batch dims that is not finite and PSD (Q, P) / PD (R) is a ``ValueError`` naming it; a
-            batched weight's failing elements get the status ``NONFINITE_INPUT``/``NOT_POSITIVE_DEFINITE``
-            (NaN outputs), the others are solved as if alone.
+            R PD); P: terminal weight (default Q).  Checked by the one rule of every solver
+            (:func:`controllers._validate.check_weight`): a weight without batch dims that is not finite
+            and symmetric PSD (Q, P) / PD (R) is a ``ValueError`` naming it; a batched weight's failing
+            elements (NaN, not symmetric, not PSD/PD) get the status ``NONFINITE_INPUT``/
+            ``NOT_POSITIVE_DEFINITE`` (NaN outputs), the others are solved as if alone.
         u_lower, u_upper: limits broadcastable to ``(*B, N, m)`` (default the system's ``u_lower``/
             ``u_upper`` when it has them, else none); ``None`` or ±inf for no limit.  A float limit that
             is NaN, or float limits with ``u_lower > u_upper``, are a ``ValueError``; tensor limits are

@@ -138,7 +138,8 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
         :class:`LQSolution` with ``x``, ``u``, gains ``K``/``k`` (``u_t = K_t x_t + k_t``), the optimal
         cost (references included) and per-element status: ``SINGULAR_QUU`` where ``H_uu`` was not
         positive definite at some step, input failures from :meth:`LQProblem.input_status`.  A failed
-        element never changes the others (every operation is per element).
+        element's outputs are NaN and it never changes the others' values or gradients (every operation
+        is per element; its backward contributes nothing).
     """
     if not isinstance(problem, LQProblem):
         raise TypeError(f"solve: argument 'problem' must be an LQProblem, got {type(problem).__name__}")
@@ -168,7 +169,14 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
     if check:
         inp = problem.input_status(None if prepared is None else prepared.status).expand(reason.shape)
         reason = torch.where(inp != 0, inp, reason)
+    bad = reason != 0
+    x, u, K, k, J = (_nan_where(bad, v) for v in (x, u, K, k, J))
     return LQSolution(x=x, u=u, K=K, k=k, cost=J, status=SolverStatus.from_reason(reason, 1))
+
+
+def _nan_where(bad: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``v`` with NaN for the failed elements ``bad (*B,)`` (no gradient flows to them)."""
+    return torch.where(bad.reshape(tuple(bad.shape) + (1,) * (v.dim() - bad.dim())), torch.nan, v)
 
 
 # --------------------------------------------------------------------------------------------------

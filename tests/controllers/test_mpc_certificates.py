@@ -328,6 +328,11 @@ def test_batched_weight_defects_are_per_element_statuses_and_isolated(bounded):
     Q2 = torch.tensor([1.0, 0.1], dtype=D)
     sol = ErrorStateMPC(DoubleIntegrator(), N5, Q2, R.detach(), **lim).solve(x0, xr, ur)
     assert sol.status.reason.tolist() == [0, int(Reason.NOT_POSITIVE_DEFINITE), 0]
+    # a batched asymmetric Q is that element's defect too (the one rule, controllers._validate.check_weight)
+    Qa = torch.diag_embed(Q2.expand(3, 2)).clone()
+    Qa[2, 0, 1] = 0.5
+    sol = ErrorStateMPC(DoubleIntegrator(), N5, Qa, R.detach().abs(), **lim).solve(x0, xr, ur)
+    assert sol.status.reason.tolist() == [0, 0, int(Reason.NOT_POSITIVE_DEFINITE)]
 
 
 # ------------------------------------------------------------------------------------------------------

@@ -348,3 +348,57 @@ def test_unstable_long_horizon_against_50_digit_reference():
     torch.testing.assert_close(sol.u, u_ref, atol=1e-11, rtol=0)
     torch.testing.assert_close(sol.cost, torch.tensor(float(J), dtype=D), atol=0, rtol=1e-12)
     torch.testing.assert_close(dense_kkt(p)[1], u_ref, atol=1e-10, rtol=0)
+
+
+def test_a_failed_element_is_nan_and_adds_nothing_to_a_shared_gradient():
+    """One element with a singular weight (R = 0, batched) is NaN in every output and reported; the
+    gradient of a shared reference equals that of the good elements solved alone (issue 22 sweep)."""
+    from controllers.costs import QuadraticCost
+    from controllers.dynamics import LinearDynamics
+    from controllers.problem import LQProblem, Reason
+
+    D, T, n = torch.float64, 5, 2
+    A = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=D)
+    Bm = torch.tensor([[0.0], [0.1]], dtype=D)
+    x0 = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.5, 0.2]], dtype=D)
+    R = torch.full((3, 1, 1, 1), 0.1, dtype=D)
+    R[1] = 0.0
+
+    def grad_of(idx):
+        mu = torch.tensor([0.3, -0.2], dtype=D, requires_grad=True)
+        cost = QuadraticCost(Q=torch.eye(n, dtype=D), R=R[idx], x_ref=mu)
+        sol = riccati.solve(LQProblem(LinearDynamics(A, Bm), cost, x0[idx], horizon=T))
+        (g,) = torch.autograd.grad(torch.nan_to_num(sol.u).sum() + torch.nan_to_num(sol.cost).sum(), mu)
+        return sol, g
+
+    sol, g = grad_of([0, 1, 2])
+    assert sol.status.reason.tolist() == [0, int(Reason.NOT_POSITIVE_DEFINITE), 0]
+    for v in (sol.x[1], sol.u[1], sol.K[1], sol.k[1], sol.cost[1]):
+        assert bool(torch.isnan(v).all())
+    _, g_good = grad_of([0, 2])
+    torch.testing.assert_close(g, g_good, rtol=1e-12, atol=1e-12)
+
+
+def test_lqr_core_backward_skips_an_element_whose_huu_is_not_pd():
+    """The functional core (no validation) with H_uu indefinite for one element: that element's garbage
+    outputs contribute nothing to the gradient of a shared linear term."""
+    D, B, T, n, m = torch.float64, 3, 5, 2, 1
+    A = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=D).expand(B, T, n, n)
+    Bm = torch.tensor([[0.0], [0.1]], dtype=D).expand(B, T, n, m)
+    Q = torch.eye(n, dtype=D).expand(B, T + 1, n, n)
+    R = torch.full((B, T, m, m), 0.1, dtype=D)
+    R[1] = -1.0
+    x0 = torch.tensor([[1.0, 0.0], [1.0, 0.0], [0.5, 0.2]], dtype=D)
+
+    def grad_of(idx):
+        q = torch.tensor([0.3, -0.2], dtype=D, requires_grad=True)
+        k = len(idx)
+        x, u, K, kk, J, ok = riccati.lqr(A[idx], Bm[idx], None, Q[idx], R[idx], None, q.expand(k, T + 1, n),
+                                         None, x0[idx], T)
+        (g,) = torch.autograd.grad(u.sum() + J.sum(), q)
+        return ok.all(-1), g
+
+    ok, g = grad_of([0, 1, 2])
+    assert ok.tolist() == [True, False, True]
+    _, g_good = grad_of([0, 2])
+    torch.testing.assert_close(g, g_good, rtol=1e-12, atol=1e-12)
