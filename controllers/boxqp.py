@@ -437,7 +437,8 @@ def _certify(H, g, lo, hi, x, dsq, hsc, tol: float, gap_tol: float, need: Tensor
     tolerance, the objective-gap bound and its tolerance, whether both hold and whether ``H`` is convex.
 
     The gap (two Cholesky factorizations) is computed only where the cheap KKT test holds or ``need`` is
-    set (one host sync); elsewhere it is ``inf`` (``nan`` tolerance) and ``H`` counts as convex.
+    set (one host sync); elsewhere it is ``inf`` (``nan`` tolerance) and ``H`` counts as convex.  (Where
+    ``H`` is not positive definite up to ``mε`` the gap is ``inf`` and ``convex`` is false.)
     """
     grad, clamped, res, kkt_tol = _kkt(H, g, lo, hi, x, dsq, hsc, tol)
     kok = res <= kkt_tol
@@ -445,10 +446,11 @@ def _certify(H, g, lo, hi, x, dsq, hsc, tol: float, gap_tol: float, need: Tensor
     gap = torch.full_like(res, torch.inf)
     gtol = torch.full_like(res, torch.nan)
     convex = torch.ones_like(kok)
-    if bool(need.all()):
+    n_need = int(need.sum())
+    if n_need == need.numel():
         gap, scale, convex = _objective_gap(H, g, lo, hi, x, dsq)
         gtol = gap_tol * scale
-    elif bool(need.any()):
+    elif n_need:
         j = need.nonzero().squeeze(-1)
         gj, sj, cj = _objective_gap(H[j], g[j], lo[j], hi[j], x[j], dsq[j])
         gap, convex = gap.index_copy(0, j, gj), convex.index_copy(0, j, cj)
