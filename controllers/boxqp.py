@@ -391,7 +391,7 @@ def _solve(H, g, lo, hi, x0, finite, *, tol, gap_tol, max_iter, **kw) -> _Sol:
     sol = _Sol(x, torch.full((nb,), int(BoxQPStatus.NON_FINITE), dtype=torch.long, device=device),
                torch.zeros(nb, dtype=torch.long, device=device), torch.zeros_like(x, dtype=torch.bool),
                nan, nan.clone(), nan.clone(), nan.clone())
-    if m <= 3 and (m == 1 or _enumerate_faces(m, nb, device)):
+    if m == 1 or _enumerate_faces(m, nb, device):
         c = _certify(H, g, lo, hi, x, dsq, hsc, tol, gap_tol)
         sol = sol._replace(clamped=c.clamped, res=c.res, kkt_tol=c.kkt_tol, gap=c.gap, gap_tol=c.gap_tol)
         if m == 1:  # closed form: certified like the rest (a failure here would mean round-off trouble)
