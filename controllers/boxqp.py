@@ -33,25 +33,63 @@ iteration (one or two Cholesky factorizations) takes the best of three families 
   hair above its bound with the gradient pushing it out is free for Tassa's test, the ill-conditioned
   Newton step hits that bound at ``α ~ 1e-8``, and the arc ascends for every step size tried; this is what
   stopped the plain method with ``NO_DESCENT`` far from the optimum.
+* **Primal active-set steps** (Nocedal & Wright, *Numerical Optimization*, 2nd ed., Algorithm 16.3): the
+  first point where the segment from ``x`` to a Newton point meets a bound, that variable exactly on it,
+  for the two Newton points above and for that of the face of ``x`` itself (its variables on a bound held,
+  except the one whose multiplier is most negative once the free gradient is smaller than it).  Each adds
+  a bound and lowers ``f``; when ``cond(H)`` is large (1e8 and more) and the solution lies on a face whose
+  weak directions the gradient hardly sees, the other candidates change bounds back and forth, and these
+  steps are what reaches that face (before: ``MAX_ITERATIONS`` on 7 of 24 such problems at cond 1e8).
 
 All candidates are evaluated at once through the exact change ``Δ(s) = ∇fᵀs + ½sᵀHs`` of the quadratic
 (``s`` = candidate − x, free of the cancellation of comparing two objective values) and, among those
 satisfying the Armijo condition ``Δ(s) ≤ armijo·∇fᵀs < 0``, the lowest is taken.
 
-**Statuses are certificates.**  With the Jacobi scaling ``D = diag(H)`` (entries that are not positive
-replaced by 1), ``u = D^½ x``, ``H̃ = D^-½ H D^-½``, ``g̃ = D^-½ g``, the stopping test, evaluated at the point
-that is returned, is the KKT condition of the box QP in projected-gradient form for the scaled problem::
+**Statuses are certificates: a stated relative objective gap.**  ``CONVERGED`` and ``ALL_CLAMPED`` mean
+that the returned ``x`` was checked to satisfy
 
-    kkt_residual  = ‖u − clip(u − (H̃u + g̃), D^½ lower, D^½ upper)‖₂
-                  = ‖D^½ (x − clip(x − D⁻¹∇f(x), lower, upper))‖₂
+    f(x) − min f  ≤  objective_gap  ≤  gap_tolerance = gap_tol · (½|xᵀHx| + |gᵀx|),
+
+the gap relative to the size of the objective's terms, with ``gap_tol`` 1e-12 in float64 and 1e-6 in
+float32 (defaults).  The bound is weak duality.  In the Jacobi-scaled variables (``D = diag(H)``, entries
+that are not positive replaced by 1, ``H̃ = D^-½ H D^-½``, ``γ̃ = D^-½ ∇f(x)``), let ``F`` be the variables
+not exactly on a bound and take the multipliers of the others as those that leave the Lagrangian's
+gradient in the span of ``F``'s coordinates, ``ν = γ̃ − H̃ d`` with ``d = H̃_FF⁻¹ γ̃_F`` (zero outside
+``F``), projected onto their sign (``≥ 0`` on a lower bound, ``≤ 0`` on an upper one; ``e`` what the
+projection removed).  For convex ``f`` the Lagrangian's minimum is then ``f(x) − gap`` with::
+
+    objective_gap = ½ γ̃_Fᵀ H̃_FF⁻¹ γ̃_F + ½ eᵀ H̃⁻¹ e
+
+(the bound terms ``λᵀ(x − lower)`` vanish: those variables are exactly on their bound).  The first term is
+the decrease a Newton step on the face of ``x`` would make, so the bound is tight on the right face and
+``e = 0`` there; it is the exact ``f(x) − f*`` in that case, free of the Schur-complement factor that the
+plain choice ``ν = γ̃`` would put between them (up to ``cond(H)``).  ``H̃`` is factored with ``mε``
+(``ε`` the machine epsilon) added to its unit diagonal, which accepts an ``H`` that is positive
+semidefinite up to round-off; where that fails ``H`` is not convex, a KKT point is not certified to be the
+minimizer, and the status is ``NOT_POSITIVE_DEFINITE``.  Two Cholesky factorizations per element, done
+only where the cheap test below already holds.  Everything is invariant under ``f → c·f`` and under a
+change of units of each variable, so the status means the same whatever the scaling.  The gap is computed
+in floating point: it bounds the exact gap of ``x`` up to the rounding of ``∇f(x)``, ``½ρᵀH̃_FF⁻¹ρ`` for
+``ρ ~ ε(|H̃||u| + |g̃|)`` (``u = D^½x``), about ``ε²·cond(H)`` of the terms, far below ``gap_tol`` in
+float64 up to ``cond(H) ≈ 1e14``.  Why the gap and not a gradient test: a gradient residual ``r`` leaves
+``f(x) − f*`` as large as ``½ rᵀH⁻¹r``, so any gradient tolerance of ``√ε`` of the terms (the test
+before issue 22) let points a box width off along a weak direction pass when ``cond(H) ≳ 1e8`` (measured:
+CONVERGED 60 % above the minimum at cond 1e12, 2.5e-3 in float32 at cond 1e4).
+
+Inputs of lower precision than float64 (float32, …) are solved in float64 (widened exactly), and the
+point rounded to their dtype is certified again, in float64, against their data; the float32 tolerance
+covers that rounding (measured: ≤ 2.3e-11 of the terms at cond(H) = 1e8), and a point that loses its
+certificate in the rounding is ``NOT_CERTIFIED``.
+
+The iterations stop on the cheap first test, the KKT condition in projected-gradient form for the
+Jacobi-scaled problem (``g̃ = D^-½ g``)::
+
+    kkt_residual  = ‖D^½ (x − clip(x − D⁻¹∇f(x), lower, upper))‖₂
     kkt_tolerance = tol · (‖g̃‖₂ + ‖H̃‖_F ‖u‖₂)                  (‖·‖_F: the Frobenius norm)
 
-The residual is zero exactly at the minimizer.  Both sides are unchanged when ``f`` is multiplied by a
-constant or a variable is measured in other units, so the test means the same whatever the scaling, and
-the tolerance is the size of the terms of the scaled gradient, which floating point attains whatever
-``cond(H)``.  ``CONVERGED`` and ``ALL_CLAMPED`` are returned only when it holds; every other status is a
-failure and names the reason.  (In practice the last iteration is a full Newton step on the right face and
-leaves a residual near round-off, far below ``kkt_tolerance``.)
+and the gap is computed where it holds: a point that passes it but not the gap is iterated further (a
+Newton step on the right face usually closes the gap), and where that fails the status names the reason
+(``SMALL_IMPROVEMENT``, ``NO_DESCENT``, ``MAX_ITERATIONS``).  Successes satisfy both tests.
 
 Shapes: ``H (*B, m, m)`` symmetric, ``g (*B, m)``, ``lower``/``upper`` broadcastable to ``(*B, m)`` (``±inf``
 means unbounded).  Everything is batched: no Python loop over batch elements, one loop over iterations.
@@ -61,6 +99,7 @@ from __future__ import annotations
 
 import enum
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -71,25 +110,30 @@ __all__ = ["BoxQPStatus", "BoxQPResult", "box_qp", "masked_hessian"]
 class BoxQPStatus(enum.IntEnum):
     """Why the solver stopped for one batch element (``BoxQPResult.status`` holds these values).
 
-    Only ``CONVERGED`` and ``ALL_CLAMPED`` are successes (:attr:`success`); both certify
-    ``kkt_residual ≤ kkt_tolerance`` at the returned ``x`` (see the module docstring): a KKT point, hence the
-    minimizer when ``H`` is positive definite.  The failures return the best point found so far (feasible,
-    never worse than the start), except ``NON_FINITE`` (NaN).
+    Only ``CONVERGED`` and ``ALL_CLAMPED`` are successes (:attr:`success`); both certify, at the returned
+    ``x``, ``objective_gap ≤ gap_tolerance`` (``f(x) − min f`` within the stated relative gap, ``H``
+    convex) and ``kkt_residual ≤ kkt_tolerance`` (see the module docstring).  The failures return the best
+    point found so far (feasible, never worse than the start), except ``NON_FINITE`` (NaN).
     """
 
-    CONVERGED = 0  #: KKT certificate holds and at least one variable is free
+    CONVERGED = 0  #: the certificate holds and at least one variable is free
     #: failure: stalled, the last step lowered f by less than ``min_rel_improve``·|f| (round-off level)
     #: while the certificate still fails
     SMALL_IMPROVEMENT = 1
-    ALL_CLAMPED = 2  #: KKT certificate holds and every variable is clamped (a vertex of the box is optimal)
+    ALL_CLAMPED = 2  #: the certificate holds and every variable is clamped (a vertex of the box is optimal)
     MAX_ITERATIONS = 3  #: failure: ``max_iter`` reached without the certificate
-    NOT_POSITIVE_DEFINITE = 4  #: failure: the free block of ``H`` is not positive definite
+    #: failure: ``H`` is not convex (its free block or, at a KKT point, ``H`` itself, with ``mε`` added to the
+    #: Jacobi-scaled diagonal, has no Cholesky factor): the point cannot be certified as the minimizer
+    NOT_POSITIVE_DEFINITE = 4
     NO_DESCENT = 5  #: failure: no candidate step satisfied the Armijo condition (round-off level)
     NON_FINITE = 6  #: failure: NaN or inf in ``H``, ``g`` or ``x0`` (or NaN bounds) of this element
+    #: failure: an input of lower precision than float64 was solved (and certified) in float64, but the
+    #: point rounded to its dtype fails the certificate
+    NOT_CERTIFIED = 7
 
     @property
     def success(self) -> bool:
-        """The returned point is certified (``kkt_residual ≤ kkt_tolerance`` was checked at it)."""
+        """The returned point is certified (the objective gap and the KKT test were checked at it)."""
         return self in _SUCCESS
 
 
@@ -108,8 +152,13 @@ class BoxQPResult:
         iterations: ``(*B,)`` int64, iterations (accepted steps) used by each element.
         kkt_residual: ``(*B,)`` the projected gradient of the Jacobi-scaled problem at the returned ``x``,
             ``‖D^½ (x − clip(x − D⁻¹(Hx + g), lower, upper))‖₂`` with ``D = diag(H)`` (NaN if ``NON_FINITE``).
-        kkt_tolerance: ``(*B,)`` ``tol·(‖D^-½ g‖₂ + ‖D^-½ H D^-½‖_F ‖D^½ x‖₂)``; the status is a success
-            (``CONVERGED``/``ALL_CLAMPED``) iff ``kkt_residual ≤ kkt_tolerance`` (see the module docstring).
+        kkt_tolerance: ``(*B,)`` ``tol·(‖D^-½ g‖₂ + ‖D^-½ H D^-½‖_F ‖D^½ x‖₂)``.
+        objective_gap: ``(*B,)`` an upper bound on ``f(x) − min f`` at the returned ``x`` (module docstring;
+            ``inf`` where ``H`` is not convex or the bound was not computed: the KKT test failed at an
+            element that stopped for another reason is still bounded, NaN if ``NON_FINITE``).
+        gap_tolerance: ``(*B,)`` ``gap_tol·(½|xᵀHx| + |gᵀx|)``.  The status is a success
+            (``CONVERGED``/``ALL_CLAMPED``) iff ``objective_gap ≤ gap_tolerance`` and
+            ``kkt_residual ≤ kkt_tolerance``.
     """
 
     x: Tensor
@@ -119,6 +168,8 @@ class BoxQPResult:
     iterations: Tensor
     kkt_residual: Tensor
     kkt_tolerance: Tensor
+    objective_gap: Tensor
+    gap_tolerance: Tensor
 
     @property
     def converged(self) -> Tensor:
@@ -164,6 +215,24 @@ def _kkt(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, x: Tensor, dsq: Tensor, h
     return grad, clamped, res, kkt_tol
 
 
+#: default relative objective-gap tolerance of the certificate, by dtype (module docstring); float64 is used
+#: for every dtype it does not list
+_GAP_TOL = {torch.float64: 1e-12, torch.float32: 1e-6}
+
+
+class _Sol(NamedTuple):
+    """The flattened solution of :func:`_solve` (fields as in :class:`BoxQPResult`, ``(nb, …)``)."""
+
+    x: Tensor
+    status: Tensor
+    iters: Tensor
+    clamped: Tensor
+    res: Tensor
+    kkt_tol: Tensor
+    gap: Tensor
+    gap_tol: Tensor
+
+
 def box_qp(
     H: Tensor,
     g: Tensor,
@@ -173,6 +242,7 @@ def box_qp(
     *,
     max_iter: int = 100,
     tol: float | None = None,
+    gap_tol: float | None = None,
     min_rel_improve: float | None = None,
     armijo: float = 0.1,
     step_dec: float = 0.5,
@@ -182,17 +252,22 @@ def box_qp(
     """Solve ``min ½xᵀHx + gᵀx  s.t.  lower ≤ x ≤ upper`` for a batch (projected Newton, see the module doc).
 
     Args:
-        H: ``(*B, m, m)`` symmetric Hessians (positive definite on the free subspace for a unique solution).
+        H: ``(*B, m, m)`` symmetric Hessians (positive definite for a certified minimizer).
         g: ``(*B, m)`` linear terms.
         lower, upper: bounds broadcastable to ``(*B, m)``; ``-inf``/``inf`` for unbounded components.
-        x0: optional ``(*B, m)`` warm start (projected onto the box); zero (projected) by default.
+        x0: optional tensor broadcastable to ``(*B, m)``, a warm start (projected onto the box); zero
+            (projected) by default.
         max_iter: iterations at most (one or two Cholesky factorizations each).
-        tol: the certificate: an element succeeds iff, at the returned ``x`` and with ``D = diag(H)``,
+        tol: the cheap first test of the certificate (and the iterations' stopping test):
             ``‖D^½ (x − clip(x − D⁻¹(Hx + g), lower, upper))‖₂ ≤ tol·(‖D^-½ g‖₂ + ‖D^-½ H D^-½‖_F ‖D^½ x‖₂)``
-            (the projected gradient of the Jacobi-scaled problem against the size of its terms; see the
-            module docstring); default ``sqrt(eps)`` of the dtype (1.5e-8 in float64, 3.5e-4 in float32).
+            with ``D = diag(H)`` (the projected gradient of the Jacobi-scaled problem against the size of
+            its terms); default ``sqrt(eps)`` of the dtype (1.5e-8 in float64, 3.5e-4 in float32).
+        gap_tol: the certificate proper: an element succeeds iff, besides ``tol``, the bound on
+            ``f(x) − min f`` of the module docstring is at most ``gap_tol·(½|xᵀHx| + |gᵀx|)``; default
+            ``1e-12`` in float64 and ``1e-6`` in float32 (and lower precisions), see the module docstring.
         min_rel_improve: declare a stall (``SMALL_IMPROVEMENT``, a failure) when an accepted step lowers the
-            objective by less than this fraction of ``|f|`` and the certificate still fails; default ``eps``.
+            objective by less than this fraction of ``|f|`` and the certificate still fails; default ``eps``
+            of the working precision.
         armijo: an accepted step ``s`` must achieve this fraction of its linearly predicted decrease
             ``−∇fᵀs``.
         step_dec, n_steps: candidate step sizes along each arc are ``step_dec**j`` times its initial step
@@ -202,9 +277,48 @@ def box_qp(
         check: validate ``lower <= upper`` (a host sync); solvers that already did may pass ``False``.
 
     Returns:
-        :class:`BoxQPResult` with per-element status, ``kkt_residual`` and ``kkt_tolerance``; one bad element
-        never affects the others.  ``m == 1`` is solved in closed form and certified the same way.
+        :class:`BoxQPResult` with per-element status, ``kkt_residual``/``kkt_tolerance`` and
+        ``objective_gap``/``gap_tolerance``; one bad element never affects the others.  Inputs of lower
+        precision than float64 are solved in float64 and the rounded point is certified against their
+        data.  ``m == 1`` is solved in closed form and ``m ≤ 3`` by enumerating faces, certified the same
+        way.
     """
+    H, g, lo, hi, x0, batch = _inputs(H, g, lower, upper, x0, check)
+    dtype, m = H.dtype, H.shape[-1]
+    gap_tol = _GAP_TOL.get(dtype, _GAP_TOL[torch.float32]) if gap_tol is None else gap_tol
+    nb = int(torch.Size(batch).numel())
+    H, g, lo, hi = H.reshape(nb, m, m), g.reshape(nb, m), lo.reshape(nb, m), hi.reshape(nb, m)
+    x0 = None if x0 is None else x0.reshape(nb, m)
+    H, g, lo, hi, x0, finite = _sanitize(H, g, lo, hi, x0)
+    eps = torch.finfo(torch.float64).eps
+    opts = dict(gap_tol=gap_tol, max_iter=max_iter, armijo=armijo, step_dec=step_dec, n_steps=n_steps,
+                tol=eps ** 0.5 if tol is None else tol,
+                min_rel_improve=eps if min_rel_improve is None else min_rel_improve)
+    if dtype == torch.float64:
+        sol = _solve(H, g, lo, hi, x0, finite, **opts)
+    else:  # solved in float64, rounded, and certified against the (exactly widened) data
+        wide = [t.double() for t in (H, g, lo, hi)]
+        sol = _solve(*wide, None if x0 is None else x0.double(), finite, **opts)
+        tol_in = torch.finfo(dtype).eps ** 0.5 if tol is None else tol
+        sol = _rounded(sol, *wide, finite, dtype, tol_in, gap_tol)
+    fin1 = finite.unsqueeze(-1)
+    out, nan = (*batch, m), torch.nan
+    return BoxQPResult(
+        x=torch.where(fin1, sol.x, nan).reshape(out),
+        free=(~sol.clamped).reshape(out),
+        clamped=sol.clamped.reshape(out),
+        status=sol.status.reshape(batch),
+        iterations=sol.iters.reshape(batch),
+        kkt_residual=torch.where(finite, sol.res, nan).reshape(batch),
+        kkt_tolerance=torch.where(finite, sol.kkt_tol, nan).reshape(batch),
+        objective_gap=torch.where(finite, sol.gap, nan).reshape(batch),
+        gap_tolerance=torch.where(finite, sol.gap_tol, nan).reshape(batch),
+    )
+
+
+def _inputs(H, g, lower, upper, x0, check: bool):
+    """Validate and broadcast the arguments of :func:`box_qp`: ``(H, g, lo, hi, x0, batch)``, expanded to
+    ``(*batch, m, m)`` and ``(*batch, m)``."""
     if not isinstance(H, Tensor) or not isinstance(g, Tensor):
         raise TypeError("box_qp: H and g must be tensors")
     if H.dim() < 2 or H.shape[-1] != H.shape[-2]:
@@ -214,10 +328,12 @@ def box_qp(
         raise ValueError(f"box_qp: g must have shape (*B, {m}) to match H, got {tuple(g.shape)}")
     if not H.dtype.is_floating_point or g.dtype != H.dtype:
         raise TypeError(f"box_qp: H and g must share one floating dtype, got {H.dtype} and {g.dtype}")
+    if x0 is not None and not isinstance(x0, Tensor):
+        raise TypeError(f"box_qp: argument 'x0' must be a torch.Tensor or None, got {type(x0).__name__}")
     dtype, device = H.dtype, H.device
     batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1])
     for name, v in (("lower", lower), ("upper", upper), ("x0", x0)):
-        if isinstance(v, torch.Tensor) and (v.dtype != dtype or v.device != device):
+        if isinstance(v, Tensor) and (v.dtype != dtype or v.device != device):
             raise TypeError(f"box_qp: argument '{name}' must have H's dtype and device ({dtype}, {device}), "
                             f"got {v.dtype} on {v.device}; convert it explicitly (nothing is cast silently)")
     lo = torch.as_tensor(lower, dtype=dtype, device=device)
@@ -228,76 +344,156 @@ def box_qp(
     except RuntimeError as e:
         raise ValueError(f"box_qp: lower/upper must broadcast to {(*batch, m)}, got {tuple(lo.shape)} "
                          f"and {tuple(hi.shape)}") from e
+    if x0 is not None:
+        try:
+            x0 = x0.expand(*batch, m)
+        except RuntimeError:
+            raise ValueError(f"box_qp: argument 'x0' must broadcast to (*B, m) = {(*batch, m)} (the batch of "
+                             f"H and g), got {tuple(x0.shape)}") from None
     if check and bool((lo > hi).any()):
         raise ValueError("box_qp: lower must be <= upper everywhere")
-    H = H.expand(*batch, m, m)
-    g = g.expand(*batch, m)
-    if x0 is not None:
-        if x0.shape[-1] != m:
-            raise ValueError(f"box_qp: x0 must have shape (*B, {m}), got {tuple(x0.shape)}")
-        x0 = x0.expand(*batch, m)
-    eps = torch.finfo(dtype).eps
-    tol = eps ** 0.5 if tol is None else tol
-    min_rel_improve = eps if min_rel_improve is None else min_rel_improve
+    return H.expand(*batch, m, m), g.expand(*batch, m), lo, hi, x0, batch
 
-    # Flatten the batch; sanitize non-finite elements so they cannot leak into batched factorizations.
-    nb = int(torch.Size(batch).numel())
-    H = H.reshape(nb, m, m)
-    g = g.reshape(nb, m)
-    lo = lo.reshape(nb, m)
-    hi = hi.reshape(nb, m)
+
+def _sanitize(H, g, lo, hi, x0):
+    """Mark the elements with NaN or inf in ``H``, ``g`` or ``x0`` or NaN bounds, and replace their data by
+    a harmless problem (identity, zero, unbounded) so that they cannot leak into batched factorizations."""
     finite = torch.isfinite(H).flatten(1).all(-1) & torch.isfinite(g).all(-1) & ~torch.isnan(lo).any(-1) \
         & ~torch.isnan(hi).any(-1)
     if x0 is not None:
-        x0 = x0.reshape(nb, m)
         finite = finite & torch.isfinite(x0).all(-1)
-    eye = torch.eye(m, dtype=dtype, device=device)
     fin1 = finite.unsqueeze(-1)
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
     H = torch.where(fin1.unsqueeze(-1), H, eye)
-    g = torch.where(fin1, g, torch.zeros((), dtype=dtype, device=device))
+    g = torch.where(fin1, g, 0.0)
     lo = torch.where(fin1, lo, -torch.inf)
     hi = torch.where(fin1, hi, torch.inf)
-    dsq, hsc = _jacobi(H)  # the scaling of the certificate
-    zero = torch.zeros((), dtype=dtype, device=device)
+    x0 = None if x0 is None else torch.where(fin1, x0, 0.0)
+    return H, g, lo, hi, x0, finite
 
+
+def _solve(H, g, lo, hi, x0, finite, *, tol, gap_tol, max_iter, **kw) -> _Sol:
+    """:func:`box_qp` on the flattened, sanitized batch ``H (nb, m, m)``, …, in the dtype of ``H``."""
+    nb, m = g.shape
+    device = g.device
+    dsq, hsc = _jacobi(H)  # the scaling of the certificate
     if m == 1:
         x = _box_qp_scalar_x(H, g, lo, hi)
     elif _enumerate_faces(m, nb, device):
         # small problems: the exact minimizer by enumerating the faces of the box (below), so a warm start
         # has nothing to add; the iterations then only certify it (and take over where no face qualifies:
         # H not positive definite on any face, from the warm start)
-        start = None if x0 is None else _clip(torch.where(fin1, x0, zero), lo, hi)
-        x = _box_qp_enum_x(H, g, lo, hi, start)
+        x = _box_qp_enum_x(H, g, lo, hi, None if x0 is None else _clip(x0, lo, hi))
     else:
-        x = torch.zeros(nb, m, dtype=dtype, device=device) if x0 is None else torch.where(fin1, x0, zero)
+        x = torch.zeros_like(g) if x0 is None else x0
         x = _clip(x, lo, hi)
-    # the certificate (and the free set) at the returned point; the loop overwrites what it decides
-    _, clamped, res, kkt_tol = _kkt(H, g, lo, hi, x, dsq, hsc, tol)
-    status = torch.full((nb,), int(BoxQPStatus.NON_FINITE), dtype=torch.long, device=device)
-    iters = torch.zeros(nb, dtype=torch.long, device=device)
-    if m == 1:  # closed form: certified like the rest (a failure here would mean round-off trouble)
-        cert = _certified_status(res <= kkt_tol, clamped, int(BoxQPStatus.NO_DESCENT))
-        status = torch.where(finite, cert, status)
-        status = torch.where(finite & (H[:, 0, 0] <= 0), int(BoxQPStatus.NOT_POSITIVE_DEFINITE), status)
-        iters = iters + 1
-    elif _enumerate_faces(m, nb, device) and bool(((res <= kkt_tol) | ~finite).all()):
-        # every enumerated point is certified (the usual case): no iteration (one host sync)
-        status = torch.where(finite, _certified_status(res <= kkt_tol, clamped, 0), status)
-    else:
-        _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, clamped, max_iter=max_iter,
-                 tol=tol, min_rel_improve=min_rel_improve, armijo=armijo, step_dec=step_dec, n_steps=n_steps)
-    x = torch.where(fin1, x, torch.nan)
-    res = torch.where(finite, res, torch.nan)
-    out = (*batch, m)
-    return BoxQPResult(
-        x=x.reshape(out),
-        free=(~clamped).reshape(out),
-        clamped=clamped.reshape(out),
-        status=status.reshape(batch),
-        iterations=iters.reshape(batch),
-        kkt_residual=res.reshape(batch),
-        kkt_tolerance=kkt_tol.reshape(batch),
-    )
+    nan = torch.full((nb,), torch.nan, dtype=g.dtype, device=device)
+    sol = _Sol(x, torch.full((nb,), int(BoxQPStatus.NON_FINITE), dtype=torch.long, device=device),
+               torch.zeros(nb, dtype=torch.long, device=device), torch.zeros_like(x, dtype=torch.bool),
+               nan, nan.clone(), nan.clone(), nan.clone())
+    if m == 1 or _enumerate_faces(m, nb, device):
+        c = _certify(H, g, lo, hi, x, dsq, hsc, tol, gap_tol)
+        sol = sol._replace(clamped=c.clamped, res=c.res, kkt_tol=c.kkt_tol, gap=c.gap, gap_tol=c.gap_tol)
+        if m == 1:  # closed form: certified like the rest (a failure here would mean round-off trouble)
+            st = _certified_status(c.cert, c.clamped, int(BoxQPStatus.NO_DESCENT))
+            st = torch.where((H[:, 0, 0] <= 0) | ~c.convex, int(BoxQPStatus.NOT_POSITIVE_DEFINITE), st)
+            return sol._replace(status=torch.where(finite, st, sol.status), iters=sol.iters + 1)
+        if bool((c.cert | ~finite).all()):  # every enumerated point certified (the usual case): no iteration
+            st = _certified_status(c.cert, c.clamped, 0)
+            return sol._replace(status=torch.where(finite, st, sol.status))
+    _iterate(H, g, lo, hi, dsq, hsc, finite, sol, tol=tol, gap_tol=gap_tol, max_iter=max_iter, **kw)
+    return sol
+
+
+def _rounded(sol: _Sol, H, g, lo, hi, finite, dtype, tol: float, gap_tol: float) -> _Sol:
+    """The float64 solution ``sol`` of the widened data ``H, g, lo, hi`` rounded to ``dtype`` and certified
+    again (in float64) at the rounded point; a certified solution whose rounding fails the certificate is
+    ``NOT_CERTIFIED``."""
+    x = sol.x.to(dtype)
+    dsq, hsc = _jacobi(H)
+    c = _certify(H, g, lo, hi, x.double(), dsq, hsc, tol, gap_tol)
+    ok = torch.zeros_like(finite)
+    for s in _SUCCESS:
+        ok = ok | (sol.status == s)
+    st = torch.where(ok, _certified_status(c.cert, c.clamped, int(BoxQPStatus.NOT_CERTIFIED)), sol.status)
+    return _Sol(x, st, sol.iters, c.clamped, *(v.to(dtype) for v in (c.res, c.kkt_tol, c.gap, c.gap_tol)))
+
+
+class _Cert(NamedTuple):
+    """The certificate at a point (flattened batch): see :func:`_certify`."""
+
+    grad: Tensor
+    clamped: Tensor
+    res: Tensor
+    kkt_tol: Tensor
+    gap: Tensor
+    gap_tol: Tensor
+    cert: Tensor
+    convex: Tensor
+
+
+def _certify(H, g, lo, hi, x, dsq, hsc, tol: float, gap_tol: float, need: Tensor | None = None) -> _Cert:
+    """The certificate of the module docstring at ``x``: the clamped set, the KKT residual and its
+    tolerance, the objective-gap bound and its tolerance, whether both hold and whether ``H`` is convex.
+
+    The gap (two Cholesky factorizations) is computed only where the cheap KKT test holds or ``need`` is
+    set (one host sync); elsewhere it is ``inf`` (``nan`` tolerance) and ``H`` counts as convex.  (Where
+    ``H`` is not positive definite up to ``mε`` the gap is ``inf`` and ``convex`` is false.)
+    """
+    grad, clamped, res, kkt_tol = _kkt(H, g, lo, hi, x, dsq, hsc, tol)
+    kok = res <= kkt_tol
+    need = kok if need is None else need | kok
+    gap = torch.full_like(res, torch.inf)
+    gtol = torch.full_like(res, torch.nan)
+    convex = torch.ones_like(kok)
+    n_need = int(need.sum())
+    if n_need == need.numel():
+        gap, scale, convex = _objective_gap(H, g, lo, hi, x, dsq)
+        gtol = gap_tol * scale
+    elif n_need:
+        j = need.nonzero().squeeze(-1)
+        gj, sj, cj = _objective_gap(H[j], g[j], lo[j], hi[j], x[j], dsq[j])
+        gap, convex = gap.index_copy(0, j, gj), convex.index_copy(0, j, cj)
+        gtol = gtol.index_copy(0, j, gap_tol * sj)
+    return _Cert(grad, clamped, res, kkt_tol, gap, gtol, kok & (gap <= gtol), convex)
+
+
+def _objective_gap(H, g, lo, hi, x, dsq) -> tuple[Tensor, Tensor, Tensor]:
+    """The bound ``gap ≥ f(x) − min f`` of the module docstring, the scale ``½|xᵀHx| + |gᵀx|`` of the
+    objective's terms, and whether ``H̃ + mεI`` is positive definite (else the gap is ``inf``).
+
+    ``F`` are the variables not exactly on a bound.  In the Jacobi-scaled variables (``H̃ = D^-½HD^-½``,
+    ``γ̃ = D^-½∇f(x)``, ``H̃ₛ = H̃ + mεI``): ``d = H̃ₛ,FF⁻¹ γ̃_F`` (zero elsewhere), the multipliers
+    ``ν = γ̃ − H̃ₛd`` on the bound variables projected onto their sign (``≥ 0`` on a lower bound, ``≤ 0`` on
+    an upper one, free when both coincide), ``e`` what the projection removed, and
+    ``gap = ½ γ̃_Fᵀd + ½ eᵀH̃ₛ⁻¹e``.
+    """
+    m = H.shape[-1]
+    hx = _matvec(H, x)
+    grad = g + hx
+    on_lo, on_hi = x == lo, x == hi
+    bound = on_lo | on_hi
+    Hs = H / (dsq.unsqueeze(-1) * dsq.unsqueeze(-2)) \
+        + m * torch.finfo(H.dtype).eps * torch.eye(m, dtype=H.dtype, device=H.device)
+    gt = grad / dsq
+    LF, okF = _safe_cholesky(masked_hessian(Hs, ~bound))
+    w = torch.linalg.solve_triangular(LF, torch.where(bound, 0.0, gt).unsqueeze(-1), upper=False)
+    d = torch.linalg.solve_triangular(LF.mT, w, upper=True).squeeze(-1)
+    nu = gt - _matvec(Hs, d)
+    lam = torch.where(on_lo & ~on_hi, nu.clamp(min=0), torch.where(on_hi & ~on_lo, nu.clamp(max=0), nu))
+    L, convex = _safe_cholesky(Hs)
+    v = torch.linalg.solve_triangular(L, torch.where(bound, nu - lam, 0.0).unsqueeze(-1), upper=False)
+    gap = 0.5 * (w.square().sum((-2, -1)) + v.square().sum((-2, -1)))
+    gap = torch.where(convex & okF, gap, torch.inf)
+    scale = 0.5 * (x * hx).sum(-1).abs() + (g * x).sum(-1).abs()
+    return gap, scale, convex
+
+
+def _safe_cholesky(A: Tensor) -> tuple[Tensor, Tensor]:
+    """Cholesky factors of ``A (nb, m, m)`` and where they exist (the identity where not)."""
+    L, info = torch.linalg.cholesky_ex(A)
+    ok = info == 0
+    return torch.where(ok.view(-1, 1, 1), L, torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)), ok
 
 
 def _certified_status(cert: Tensor, clamped: Tensor, otherwise: Tensor | int) -> Tensor:
@@ -327,6 +523,18 @@ def _arc(x: Tensor, d: Tensor, steps: Tensor, lo: Tensor, hi: Tensor, end: Tenso
     return c
 
 
+def _breakpoint(x: Tensor, d: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """``(nb, m, 1)``: the first point where the segment ``x + t d``, ``0 ≤ t ≤ 1``, from a feasible ``x``
+    meets a bound, that bound's variables exactly on it (the step of a primal active-set method, which
+    adds one bound; ``x + d`` if none is met)."""
+    t = torch.where(d < 0, (lo - x) / d, torch.where(d > 0, (hi - x) / d, torch.inf)).clamp(min=0)
+    tmin = t.amin(-1, keepdim=True).clamp(max=1.0)
+    c = x + tmin * d
+    hit = t <= tmin
+    c = torch.where(hit & (d < 0), lo, torch.where(hit & (d > 0), hi, c))
+    return _clip(c, lo, hi).unsqueeze(-1)
+
+
 def _working_set(z: Tensor, gz: Tensor, lo: Tensor, hi: Tensor, hdiag: Tensor) -> Tensor:
     """``(nb, m)`` int8: 1 (2) where a diagonal Newton step ``zᵢ − ∂ᵢf(z)/Hᵢᵢ`` reaches the lower (upper)
     bound, which then holds the variable, 0 where it is free."""
@@ -352,6 +560,32 @@ def _newton_point(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, w: Tensor) -> tu
     return b - torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1), notpd
 
 
+def _face_of(x: Tensor, grad: Tensor, lo: Tensor, hi: Tensor, dsq: Tensor) -> Tensor:
+    """The working set of a primal active-set step at a feasible ``x`` (as :func:`_working_set`): every
+    variable on a bound held, except, where the largest Jacobi-scaled gradient pointing into the box from a
+    bound exceeds that of the free variables (``x`` near the minimizer of its face), that one variable."""
+    on_lo, on_hi = x <= lo, (x >= hi) & (x > lo)
+    gs = grad / dsq
+    inward = torch.where(on_lo, -gs, torch.where(on_hi, gs, 0.0)).clamp(min=0)  # multiplier violations
+    free_g = torch.where(on_lo | on_hi, 0.0, gs.abs()).amax(-1, keepdim=True)
+    worst = inward.amax(-1, keepdim=True)
+    release = (inward == worst) & (worst > free_g)
+    release = release & (release.cumsum(-1) == 1)  # one variable
+    w = torch.where(on_lo, 1, torch.where(on_hi, 2, 0))
+    return torch.where(release, 0, w).to(torch.int8)
+
+
+def _other_newton_point(H, g, lo, hi, w, w0, y0) -> tuple[Tensor, Tensor]:
+    """:func:`_newton_point` of working sets ``w``, reusing ``y0`` (that of ``w0``) where they agree."""
+    differ = (w != w0).any(-1)
+    notpd = torch.zeros_like(differ)
+    if not bool(differ.any()):
+        return y0, notpd
+    j = differ.nonzero().squeeze(-1)
+    yj, notpd_j = _newton_point(H[j], g[j], lo[j], hi[j], w[j])
+    return y0.index_copy(0, j, yj), notpd.index_copy(0, j, notpd_j)
+
+
 def _hash_weights(m: int, device) -> Tensor:
     """Fixed pseudo-random weights < 2⁴⁸ hashing a working set (0 free, 1 lower, 2 upper per variable) into
     one int64 without overflow (m < 16384); a collision only costs an early restart."""
@@ -359,10 +593,10 @@ def _hash_weights(m: int, device) -> Tensor:
     return torch.randint(0, 1 << 48, (m,), generator=gen, dtype=torch.long).to(device)
 
 
-def _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, clamped, *, max_iter, tol,
-             min_rel_improve, armijo, step_dec, n_steps) -> None:
-    """The iterations of :func:`box_qp` on the flattened batch, writing ``x``, ``status``, ``iters`` and the
-    certificate (``res``, ``kkt_tol``, ``clamped``) of every finite element in place.
+def _iterate(H, g, lo, hi, dsq, hsc, finite, sol: _Sol, *, max_iter, tol, gap_tol, min_rel_improve, armijo,
+             step_dec, n_steps) -> None:
+    """The iterations of :func:`box_qp` on the flattened batch from ``sol.x``, writing the point, status,
+    iterations and certificate of every finite element into ``sol``'s tensors in place.
 
     Only the undecided elements are carried: the working tensors are compacted (one boolean index, a host
     sync) whenever some element stops, so a batch of easy problems with a few hard ones costs little more
@@ -374,7 +608,7 @@ def _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, cla
     alphas = step_dec ** torch.arange(n_steps, dtype=dtype, device=device)  # (S,)
     pending_code = int(BoxQPStatus.MAX_ITERATIONS)
     sel = finite.nonzero().squeeze(-1)
-    Hc, gc, loc, hic, dc, hc, xc = H[sel], g[sel], lo[sel], hi[sel], dsq[sel], hsc[sel], x[sel]
+    Hc, gc, loc, hic, dc, hc, xc = H[sel], g[sel], lo[sel], hi[sel], dsq[sel], hsc[sel], sol.x[sel]
     fval = 0.5 * (xc * _matvec(Hc, xc)).sum(-1) + (gc * xc).sum(-1)
     pending = torch.full_like(sel, pending_code)  # a failure decided at the current point, if any
     # The active-set iterate z (may leave the box) and the working sets it visited since its last restart.
@@ -383,14 +617,20 @@ def _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, cla
     weights = _hash_weights(m, device)
 
     for it in range(max_iter + 1):
-        grad, clc, rc, tc = _kkt(Hc, gc, loc, hic, xc, dc, hc, tol)
-        cert = rc <= tc
-        stop = cert | (pending != pending_code) | (it == max_iter)
+        # the certificate, its gap part where the KKT test holds or the element stops anyway; a KKT point
+        # of a non-convex QP is not certified and iterating cannot change that
+        c = _certify(Hc, gc, loc, hic, xc, dc, hc, tol, gap_tol,
+                     need=(pending != pending_code) | (it == max_iter))
+        pending = torch.where(~c.cert & (c.res <= c.kkt_tol) & ~c.convex,
+                              int(BoxQPStatus.NOT_POSITIVE_DEFINITE), pending)
+        stop = c.cert | (pending != pending_code) | (it == max_iter)
+        grad, clc = c.grad, c.clamped
         if bool(stop.any()):
             idx = sel[stop]
-            x[idx] = xc[stop]
-            status[idx] = _certified_status(cert, clc, pending)[stop]
-            res[idx], kkt_tol[idx], clamped[idx] = rc[stop], tc[stop], clc[stop]
+            sol.x[idx] = xc[stop]
+            sol.status[idx] = _certified_status(c.cert, clc, pending)[stop]
+            for name in ("clamped", "res", "kkt_tol", "gap", "gap_tol"):
+                getattr(sol, name)[idx] = getattr(c, name)[stop]
             go = ~stop
             sel, Hc, gc, loc, hic, xc = sel[go], Hc[go], gc[go], loc[go], hic[go], xc[go]
             dc, hc = dc[go], hc[go]
@@ -416,17 +656,19 @@ def _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, cla
         wz = _working_set(zc, gz, loc, hic, hdiag)
         y, notpd = _newton_point(Hc, gc, loc, hic, wz)
         wcp = _working_set(xcp, grad + _matvec(Hc, xcp - xc), loc, hic, hdiag)
-        ycp = y
-        both = (wcp != wz).any(-1)
-        if bool(both.any()):
-            j = both.nonzero().squeeze(-1)
-            yj, notpd_j = _newton_point(Hc[j], gc[j], loc[j], hic[j], wcp[j])
-            ycp = y.index_copy(0, j, yj)
-            notpd = notpd.index_copy(0, j, notpd[j] | notpd_j)
+        ycp, notpd_cp = _other_newton_point(Hc, gc, loc, hic, wcp, wz, y)
+        notpd = notpd | notpd_cp
+        #    and of the face of x (its clamped variables held): a primal active-set step towards it
+        wx = _face_of(xc, grad, loc, hic, dc)
+        yx, notpd_x = _other_newton_point(Hc, gc, loc, hic, wx, wz, y)
+        yx = torch.where(notpd_x.unsqueeze(-1), xc, yx)  # no step where that face is not convex
         # 3. The projected arcs x → y and Cauchy point → its Newton point (α = 1: the target itself, held
-        #    variables exactly on their bounds), with the gradient arc: (nc, m, 3S) candidates.
+        #    variables exactly on their bounds), the first breakpoints of the segments towards the three
+        #    Newton points (a bound added exactly), with the gradient arc: (nc, m, 3S + 3) candidates.
         c_n = torch.cat([_arc(xc, y - xc, alphas, loc, hic, y),
-                         _arc(xcp, ycp - xcp, alphas, loc, hic, ycp)], -1)
+                         _arc(xcp, ycp - xcp, alphas, loc, hic, ycp),
+                         _breakpoint(xc, y - xc, loc, hic), _breakpoint(xcp, ycp - xcp, loc, hic),
+                         _breakpoint(xc, yx - xc, loc, hic)], -1)
         lin_n, delta_n = _change(Hc, grad, xc, c_n)
         cand = torch.cat([c_n, c_pg], -1)
         lin = torch.cat([lin_n, lin_pg], -1)
@@ -438,7 +680,7 @@ def _iterate(H, g, lo, hi, x, dsq, hsc, finite, status, iters, res, kkt_tol, cla
         dbest = delta.gather(-1, best).squeeze(-1)
         xn = cand.gather(-1, best.unsqueeze(1).expand(nc, m, 1)).squeeze(-1)  # exactly on a bound if clipped
         xc = torch.where(stepped.unsqueeze(-1), xn, xc)
-        iters[sel] += stepped.long()
+        sol.iters[sel] += stepped.long()
         stall = stepped & (-dbest < min_rel_improve * fval.abs())
         fval = torch.where(stepped, fval + dbest, fval)
         # The map from one working set to the next is deterministic: a repeated set is a cycle, and the

@@ -13,7 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["objective", "kkt_residual", "kkt_tolerance", "active_set_qp", "bvls_qp",
-           "mp_kkt_check", "random_box_qp"]
+           "mp_kkt_check", "random_box_qp", "mp_minimizer", "mp_objective_difference", "objective_scale",
+           "ill_conditioned_box_qp", "objective_gap_bound"]
 
 
 def objective(H: np.ndarray, g: np.ndarray, x: np.ndarray) -> float:
@@ -157,3 +158,117 @@ def random_box_qp(rng: np.random.Generator, m: int, cond: float, *, frac_on_boun
     up = rng.random(m) < 0.5
     x0 = np.where(on & up & np.isfinite(hi), hi, np.where(on & np.isfinite(lo), lo, x0))
     return H, g, lo, hi, np.clip(x0, lo, hi)
+
+
+def objective_scale(H, g, x) -> float:
+    """``½|xᵀHx| + |gᵀx|``: the size of the objective's terms that ``box_qp``'s gap tolerance is
+    relative to."""
+    return float(0.5 * abs(x @ H @ x) + abs(g @ x))
+
+
+def mp_objective_difference(H, g, x, y, dps: int = 50) -> float:
+    """``f(x) − f(y)`` computed exactly (``dps`` digits) for float64 data and points: free of the
+    cancellation that limits a float64 evaluation of ``f`` to ``eps·|x|ᵀ|H||x|``."""
+    import mpmath
+
+    with mpmath.workdps(dps):
+        d = [mpmath.mpf(float(a)) - mpmath.mpf(float(b)) for a, b in zip(x, y)]
+        s = [mpmath.mpf(float(a)) + mpmath.mpf(float(b)) for a, b in zip(x, y)]
+        m = len(d)
+        # f(x) − f(y) = dᵀ(g + ½H(x + y)) with d = x − y
+        total = mpmath.mpf(0)
+        for i in range(m):
+            hs = mpmath.fsum(mpmath.mpf(float(H[i, j])) * s[j] for j in range(m))
+            total += d[i] * (mpmath.mpf(float(g[i])) + hs / 2)
+        return float(total)
+
+
+def mp_minimizer(H, g, lo, hi, x, dps: int = 50, max_changes: int = 30) -> np.ndarray:
+    """The minimizer of a strictly convex box QP (float64 data taken exactly), found in ``dps``-digit
+    arithmetic from a guess ``x`` (another solver's answer) and proved by its KKT conditions.
+
+    Starting from the face of ``x`` (variables exactly on a bound held there), it solves the face's
+    equality-constrained problem exactly; a free variable out of the box is put on the bound it crosses
+    most, a held variable with a negative multiplier is released, until the face solution is feasible
+    with multipliers ≥ 0: then it is the KKT point, hence the minimizer (whatever path led there).
+    Returns it rounded to float64; raises if that is not reached in ``max_changes`` face changes.
+    """
+    import mpmath
+
+    m = len(g)
+    lo = np.broadcast_to(np.asarray(lo, dtype=np.float64), (m,))
+    hi = np.broadcast_to(np.asarray(hi, dtype=np.float64), (m,))
+    at_lo, at_hi = x == lo, (x == hi) & (x != lo)
+    with mpmath.workdps(dps):
+        Hm = mpmath.matrix([[mpmath.mpf(float(v)) for v in row] for row in H])
+        gm = [mpmath.mpf(float(v)) for v in g]
+        lom = [mpmath.mpf(float(v)) for v in lo]
+        him = [mpmath.mpf(float(v)) for v in hi]
+        tiny = mpmath.mpf(10) ** (-(dps // 2))
+        for _ in range(max_changes):
+            F = [i for i in range(m) if not (at_lo[i] or at_hi[i])]
+            xf = [lom[i] if at_lo[i] else him[i] if at_hi[i] else mpmath.mpf(0) for i in range(m)]
+            if F:
+                A = mpmath.matrix([[Hm[i, j] for j in F] for i in F])
+                b = mpmath.matrix([-(gm[i] + mpmath.fsum(Hm[i, j] * xf[j] for j in range(m) if j not in F))
+                                   for i in F])
+                sol = mpmath.cholesky_solve(A, b)
+                for k, i in enumerate(F):
+                    xf[i] = sol[k]
+            excess = [(max(lom[i] - xf[i], xf[i] - him[i]), i) for i in F]
+            worst, i = max(excess, default=(mpmath.mpf(0), -1))
+            if worst > 0:
+                at_lo[i], at_hi[i] = bool(xf[i] < lom[i]), bool(xf[i] > him[i])
+                continue
+            grad = [gm[i] + mpmath.fsum(Hm[i, j] * xf[j] for j in range(m)) for i in range(m)]
+            lam = [(grad[i] if at_lo[i] else -grad[i], i) for i in range(m) if at_lo[i] or at_hi[i]]
+            low, i = min(lam, default=(mpmath.mpf(0), -1))
+            scale = tiny * (1 + max(abs(v) for v in grad))
+            if low < -scale and lo[i] != hi[i]:
+                at_lo[i] = at_hi[i] = False
+                continue
+            return np.array([float(v) for v in xf])
+    raise RuntimeError("mp_minimizer: no KKT point reached")
+
+
+def ill_conditioned_box_qp(rng: np.random.Generator, m: int, cond: float, *, g_scale: float | None = None):
+    """A box QP whose difficulty is its conditioning (issue 22): ``H = U diag(s) Uᵀ`` with Haar ``U`` and
+    log-spaced ``s`` in ``[1/cond, 1]`` (times a random overall scale), box ``[-1, 1]``, and a small
+    random ``g`` (default ``100/cond`` times ``max(s)``): the unconstrained minimizer is large only along
+    the weakest directions, so the solution has most variables free and a few on bounds, and a point
+    that is wrong by a box width along a weak direction still has a small gradient.
+
+    Returns ``(H, g, lo, hi)`` as float64 numpy arrays.
+    """
+    Q, R = np.linalg.qr(rng.standard_normal((m, m)))
+    U = Q * np.sign(np.diag(R))
+    s = np.logspace(0.0, -np.log10(cond), m) * 10.0 ** rng.uniform(-1, 1)
+    H = (U * s) @ U.T
+    H = 0.5 * (H + H.T)
+    g = (100.0 / cond if g_scale is None else g_scale) * s.max() * rng.standard_normal(m)
+    return H, g, -np.ones(m), np.ones(m)
+
+
+def objective_gap_bound(H, g, lo, hi, x) -> float:
+    """The documented bound of ``box_qp``'s certificate on ``f(x) − min f`` (numpy, float64): in the
+    Jacobi-scaled variables with ``H̃ₛ = H̃ + mεI``, ``F`` the variables not exactly on a bound,
+    ``d = H̃ₛ,FF⁻¹ γ̃_F``, the bound multipliers ``ν = γ̃ − H̃ₛ d`` projected on their sign (``e`` the
+    removed part), ``½ γ̃_F·d_F + ½ eᵀH̃ₛ⁻¹e``; ``inf`` if ``H̃ₛ`` has no Cholesky factor."""
+    m = len(g)
+    D = np.diag(H).copy()
+    D[~(D > 0)] = 1.0
+    s = np.sqrt(D)
+    Hs = H / np.outer(s, s) + m * np.finfo(np.float64).eps * np.eye(m)
+    try:
+        np.linalg.cholesky(Hs)
+    except np.linalg.LinAlgError:
+        return np.inf
+    gt = (H @ x + g) / s
+    on_lo, on_hi = x == lo, x == hi
+    F = ~(on_lo | on_hi)
+    d = np.zeros(m)
+    d[F] = np.linalg.solve(Hs[np.ix_(F, F)], gt[F])
+    nu = gt - Hs @ d
+    lam = np.where(on_lo & ~on_hi, np.maximum(nu, 0), np.where(on_hi & ~on_lo, np.minimum(nu, 0), nu))
+    e = np.where(F, 0.0, nu - lam)
+    return float(0.5 * gt[F] @ d[F] + 0.5 * e @ np.linalg.solve(Hs, e))
