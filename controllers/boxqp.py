@@ -98,7 +98,7 @@ means unbounded).  Everything is batched: no Python loop over batch elements, on
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import torch
@@ -276,6 +276,11 @@ def box_qp(
             whenever ``cond(D^-½ H D^-½)`` is below about ``step_dec**-(n_steps - 1)`` (8e6 by default).
         check: validate ``lower <= upper`` (a host sync); solvers that already did may pass ``False``.
 
+    Gradients: with autograd on and ``H``, ``g`` or a bound requiring grad, ``x`` carries the derivative of
+    the minimizer on the face it lies on (the active set held fixed, clamped variables moving with their
+    bound), which is the derivative of the solution wherever the active set is locally constant; the
+    iterations themselves run without a graph.
+
     Returns:
         :class:`BoxQPResult` with per-element status, ``kkt_residual``/``kkt_tolerance`` and
         ``objective_gap``/``gap_tolerance``; one bad element never affects the others.  Inputs of lower
@@ -283,6 +288,15 @@ def box_qp(
         data.  ``m == 1`` is solved in closed form and ``m ≤ 3`` by enumerating faces, certified the same
         way.
     """
+    graph = any(isinstance(v, Tensor) and v.requires_grad for v in (H, g, lower, upper))
+    if graph and torch.is_grad_enabled():
+        # solve without a graph, then attach the derivative of the minimizer on the face it lies on
+        with torch.no_grad():
+            res = box_qp(H.detach(), g.detach(), _detached(lower), _detached(upper),
+                         None if x0 is None else x0.detach(), max_iter=max_iter, tol=tol, gap_tol=gap_tol,
+                         min_rel_improve=min_rel_improve, armijo=armijo, step_dec=step_dec, n_steps=n_steps,
+                         check=check)
+        return replace(res, x=_with_face_derivative(H, g, lower, upper, res))
     H, g, lo, hi, x0, batch = _inputs(H, g, lower, upper, x0, check)
     dtype, m = H.dtype, H.shape[-1]
     gap_tol = _GAP_TOL.get(dtype, _GAP_TOL[torch.float32]) if gap_tol is None else gap_tol
@@ -314,6 +328,37 @@ def box_qp(
         objective_gap=torch.where(finite, sol.gap, nan).reshape(batch),
         gap_tolerance=torch.where(finite, sol.gap_tol, nan).reshape(batch),
     )
+
+
+def _detached(v):
+    return v.detach() if isinstance(v, Tensor) else v
+
+
+def _with_face_derivative(H: Tensor, g: Tensor, lower, upper, res: BoxQPResult) -> Tensor:
+    """``res.x`` carrying the derivative of the minimizer with respect to ``H``, ``g`` and the bounds on the
+    face it lies on: clamped variables at their (nearer) bound, the free ones from
+    ``H_FF x_F = −(g_F + H_FC x_C)`` (the implicit function theorem on the KKT system with the active set
+    held).  The value is ``res.x`` unchanged; elements that are not finite or whose free block is not
+    positive definite get no derivative (their status already says they failed)."""
+    x, clamped = res.x, res.clamped
+    lo = torch.as_tensor(lower, dtype=H.dtype, device=H.device).expand_as(x)
+    hi = torch.as_tensor(upper, dtype=H.dtype, device=H.device).expand_as(x)
+    free = ~clamped
+    xd = x.detach()
+    on_lo = clamped & ((xd - lo.detach()) <= (hi.detach() - xd))  # exact with an infinite other bound
+    usable = torch.isfinite(xd).all(-1) & res.status.ne(int(BoxQPStatus.NON_FINITE))
+    good = usable.unsqueeze(-1)
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
+    Hs = torch.where(good.unsqueeze(-1), H, eye)
+    gs = torch.where(good, g, 0.0)
+    xc = torch.where(clamped & good, torch.where(on_lo, lo, hi), 0.0)
+    rhs = torch.where(free, -(gs + (Hs @ xc.unsqueeze(-1)).squeeze(-1)), 0.0)
+    L, info = torch.linalg.cholesky_ex(masked_hessian(Hs, free))
+    ok = (info == 0) & usable
+    L = torch.where(ok[..., None, None], L, eye)
+    xf = torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
+    face = torch.where(free, xf, xc)
+    return x + torch.where(ok.unsqueeze(-1), face - face.detach(), 0.0)
 
 
 def _inputs(H, g, lower, upper, x0, check: bool):
