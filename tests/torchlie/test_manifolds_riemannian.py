@@ -599,6 +599,21 @@ def test_product_of_gaussians_euclidean_matches_closed_form():
     assert res.converged.all() and (res.iterations <= 2).all()
 
 
+def test_product_of_gaussians_a_singular_covariance_fails_only_its_element():
+    """A degenerate (singular) covariance has no precision: that element ends not converged, the others
+    equal the product computed without it (before: one LinAlgError for the whole batch)."""
+    g = _gen(53)
+    mu = torch.randn(3, 2, 4, generator=g, dtype=F64)
+    A = torch.randn(3, 2, 4, 4, generator=g, dtype=F64)
+    S = A @ A.mT + 0.05 * torch.eye(4, dtype=F64)
+    S[1, 0] = torch.diag(torch.tensor([1.0, 1.0, 0.0, 1.0], dtype=F64))
+    res = mf.gaussian_product(mf.Euclidean(4), mu, S)
+    assert res.converged.tolist() == [True, False, True]
+    ref = mf.gaussian_product(mf.Euclidean(4), mu[[0, 2]], S[[0, 2]])
+    torch.testing.assert_close(res.mean[[0, 2]], ref.mean, rtol=0, atol=0)
+    torch.testing.assert_close(res.covariance[[0, 2]], ref.covariance, rtol=0, atol=0)
+
+
 def test_product_of_gaussians_on_sphere_approaches_euclidean_for_tiny_covariances():
     g = _gen(53)
     p = _unit((3,), g)

@@ -329,11 +329,15 @@ def gaussian_product(manifold: RiemannianManifold, means: torch.Tensor, covarian
         S = A @ (P_k @ covs @ P_k) @ A.transpose(-1, -2)                      # transported, tangent at μ
         NN = _tangent_projector_terms(manifold, mu, m)                        # (*B, m, m)
         NN1 = NN.unsqueeze(-3)
-        Lam_k = torch.linalg.inv(S + NN1) - NN1                               # tangent-space inverses
+        # tangent-space inverses; a singular one (a degenerate covariance) fails its element only
+        Lam_k, info_k = torch.linalg.inv_ex(S + NN1)
+        Lam_k = Lam_k - NN1
         Lam = Lam_k.sum(-3)
-        cov_new = torch.linalg.inv(Lam + NN) - NN
+        cov_new, info = torch.linalg.inv_ex(Lam + NN)
+        cov_new = cov_new - NN
         u = (cov_new @ (Lam_k @ u_k.unsqueeze(-1)).sum(-3)).squeeze(-1)
-        finite = torch.isfinite(u).all(-1) & torch.isfinite(cov_new).flatten(-2).all(-1)
+        finite = torch.isfinite(u).all(-1) & torch.isfinite(cov_new).flatten(-2).all(-1) \
+            & (info_k == 0).all(-1) & (info == 0)
         failed = failed | (active & ~finite)
         step = active & finite
         u = torch.where(step.unsqueeze(-1), u, torch.zeros_like(u))
