@@ -55,9 +55,10 @@ Gauss–Newton Hessian.
 
 **Status** per element (:class:`~controllers.problem.Reason`): ``NONFINITE_INPUT`` for a NaN/inf in one
 element's state, reference, batched weight or tensor limit, ``NOT_POSITIVE_DEFINITE`` for a batched weight
-that is not PSD (Q, P) / PD (R), ``INFEASIBLE_BOUNDS`` where ``u_lower > u_upper`` (such an element's
-outputs are NaN, the others are solved as if alone), ``SINGULAR_QUU`` where the QP Hessian is not positive
-definite, ``MAX_ITERATIONS``/``STALLED`` where the box QP or the iteration did not certify its point.
+that is not PSD (Q, P) / PD (R), ``INFEASIBLE_BOUNDS`` where ``u_lower > u_upper``, ``u_lower = +inf`` or
+``u_upper = -inf`` (such an element's outputs are NaN, the others are solved as if alone), ``SINGULAR_QUU``
+where the QP Hessian is not positive definite, ``MAX_ITERATIONS``/``STALLED`` where the box QP or the
+iteration did not certify its point.
 Each element keeps its first failure in that order (:func:`first_failure`): no later stage overwrites it.
 A state off the manifold, a shared weight that is not finite and symmetric PSD/PD, and an argument of the
 wrong type or shape are a ``TypeError``/``ValueError`` naming the argument.
@@ -79,6 +80,7 @@ from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
 from controllers.problem import GradMode, LQProblem, Reason, SolverStatus
+from torchlie._batch import check_tensor
 
 __all__ = [
     "ManifoldSystem",
@@ -427,6 +429,9 @@ def _limit(b, name: str, fn: str, N: int, m: int, own: bool):
     if not isinstance(b, Tensor):
         if math.isnan(b):
             raise ValueError(f"{fn}: argument '{name}' is NaN (use ±inf or None for no limit)")
+        if b == (math.inf if name == "u_lower" else -math.inf):
+            raise ValueError(f"{fn}: argument '{name}' is {b} (no control satisfies it; use "
+                             f"{'-inf' if name == 'u_lower' else 'inf'} or None for no limit)")
         return float(b)
     if not b.dtype.is_floating_point:
         raise TypeError(f"{fn}: argument '{name}' must have a floating dtype, got {b.dtype}")
@@ -435,6 +440,22 @@ def _limit(b, name: str, fn: str, N: int, m: int, own: bool):
         raise ValueError(f"{fn}: argument '{name}' must broadcast to (*B, N, m) = (*B, {N}, {m}) "
                          f"(e.g. ({m},), ({N}, {m}) or (B, 1, {m})), got {sh}")
     return b
+
+
+def _check_options(fn: str, *, tol, **counts) -> None:
+    """The iteration options of :meth:`ErrorStateMPC.iterate`: counts are ints (``TypeError``) ≥ 1, ``tol``
+    None or a positive finite real (``ValueError`` naming the argument)."""
+    for name, v in counts.items():
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise TypeError(f"{fn}: argument '{name}' must be an int, got {type(v).__name__}")
+        if v < 1:
+            raise ValueError(f"{fn}: argument '{name}' must be >= 1, got {v}")
+    if tol is None:
+        return
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)):
+        raise TypeError(f"{fn}: argument 'tol' must be None or a real number, got {type(tol).__name__}")
+    if not (0 < tol < math.inf):
+        raise ValueError(f"{fn}: argument 'tol' must be positive and finite, got {tol!r}")
 
 
 class ErrorStateMPC:
@@ -451,10 +472,11 @@ class ErrorStateMPC:
             ``NOT_POSITIVE_DEFINITE`` (NaN outputs), the others are solved as if alone.
         u_lower, u_upper: limits broadcastable to ``(*B, N, m)`` (default the system's ``u_lower``/
             ``u_upper`` when it has them, else none); ``None`` or ±inf for no limit.  A float limit that
-            is NaN, or float limits with ``u_lower > u_upper``, are a ``ValueError``; tensor limits are
-            checked per element at solve time (as :func:`~controllers.ilqr.ilqr` does, no host sync): a
-            NaN entry makes that element ``NONFINITE_INPUT``, ``u_lower > u_upper`` anywhere makes it
-            ``INFEASIBLE_BOUNDS`` (NaN outputs either way).
+            is NaN, ``u_lower = +inf``, ``u_upper = -inf``, or float limits with ``u_lower > u_upper``,
+            are a ``ValueError``; tensor limits are checked per element at solve time (as
+            :func:`~controllers.ilqr.ilqr` does, no host sync): a NaN entry makes that element
+            ``NONFINITE_INPUT``; ``u_lower > u_upper``, ``u_lower = +inf`` or ``u_upper = -inf`` anywhere
+            makes it ``INFEASIBLE_BOUNDS`` (NaN outputs either way).
         solver: ``"auto"``, ``"qp"`` (condensed, Eq. 28/31) or ``"riccati"`` (no limits only).
         grad: :class:`~controllers.problem.GradMode` (``"implicit"``, ``"none"``; ``"unrolled"`` is
             accepted by the Riccati path and treated as implicit by the QP path).
@@ -539,12 +561,13 @@ class ErrorStateMPC:
     def _bounds(self, u_bar: Tensor, batch) -> tuple[Tensor, Tensor, Tensor]:
         """Limits on ``δu = u − ū``, ``(*B, N, m)`` each (±inf where unbounded), and the ``(*B,)`` reason
         codes of the limits: ``NONFINITE_INPUT`` where an entry is NaN, ``INFEASIBLE_BOUNDS`` where
-        ``u_lower > u_upper``; such an element gets open limits (its outputs are NaN-ed by the caller)."""
+        ``u_lower > u_upper``, ``u_lower = +inf`` or ``u_upper = -inf`` (no feasible control); such an element
+        gets open limits (its outputs are NaN-ed by the caller)."""
         lo, hi = self._limits(u_bar)
         shape = (*batch, self.N, self.m)
         lo, hi = lo.expand(shape), hi.expand(shape)
         nan = (torch.isnan(lo) | torch.isnan(hi)).flatten(-2).any(-1)
-        crossed = (lo > hi).flatten(-2).any(-1)
+        crossed = ((lo > hi) | (lo == math.inf) | (hi == -math.inf)).flatten(-2).any(-1)  # as ilqr's rule
         reason = torch.where(nan, int(Reason.NONFINITE_INPUT),
                              torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), 0))
         bad = (reason != 0)[..., None, None]
@@ -567,6 +590,11 @@ class ErrorStateMPC:
                 kind = "a ProductState" if product else "a torch.Tensor"
                 raise TypeError(f"{fn}: argument '{name}' must be a point of {M!r} ({kind}), "
                                 f"got {type(v).__name__}")
+            if not product:
+                check_tensor(v, tuple(M.event_shape), name, fn)  # floating, trailing shape of one point
+            elif not all(leaf.dtype.is_floating_point for leaf in _leaves(v)):
+                raise TypeError(f"{fn}: argument '{name}' must have floating components, got "
+                                f"{[leaf.dtype for leaf in _leaves(v)]}")
         if not isinstance(u_ref, Tensor):
             raise TypeError(f"{fn}: argument 'u_ref' must be a torch.Tensor, got {type(u_ref).__name__}")
         if u_ref.dim() < 2 or u_ref.shape[-2:] != (N, m):
@@ -821,6 +849,7 @@ class ErrorStateMPC:
         ``u_init`` ``(*B, N, m)``: the first linearization controls (default ``u_ref`` clipped to the
         limits); ``tol``: relative projected-gradient tolerance (default ``sqrt(eps)`` of the dtype)."""
         fn = "ErrorStateMPC.iterate"
+        _check_options(fn, max_iter=max_iter, line_search_steps=line_search_steps, tol=tol)
         x0, x_ref, u_ref, batch, Qs, R, lo_abs, hi_abs, _, reason0 = self._inputs(x0, x_ref, u_ref, None, fn)
         ok = reason0 == 0
         lo_abs, hi_abs = lo_abs + u_ref, hi_abs + u_ref  # absolute (±inf stays ±inf)

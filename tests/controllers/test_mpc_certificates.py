@@ -489,3 +489,57 @@ def test_iterate_reports_input_failures_first():
     for i in (0, 1):
         torch.testing.assert_close(sol.U[i, :, 0], torch.tensor(_bvls(X0S[i], N5, -1.0, 1.0), dtype=D),
                                    rtol=0, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------------
+# adversarial round 2: infinite limits that admit no control, argument errors that name the argument
+# ------------------------------------------------------------------------------------------------------
+
+
+def test_a_lower_limit_of_plus_inf_or_an_upper_of_minus_inf_is_infeasible():
+    """ilqr's rule: ``u ≥ +inf`` (or ``u ≤ -inf``) has no solution.  A float limit is a ValueError; a tensor
+    limit that says so at one step makes that element INFEASIBLE_BOUNDS (the other elements solved as if
+    alone: the bounded least-squares minimizer).  Before, such a limit was dropped (an unconstrained plan,
+    CONVERGED) or gave STALLED with inf in the plan."""
+    for kw in ({"u_lower": math.inf}, {"u_upper": -math.inf}):
+        with pytest.raises(ValueError, match=f"'{next(iter(kw))}'"):
+            _di_mpc(**kw)
+    x0, xr, ur = _di_problem()
+    lo = torch.full((3, N5, 1), -0.5, dtype=D)
+    hi = torch.full((3, N5, 1), INF, dtype=D)
+    lo[0, 1, 0] = INF  # element 0: no feasible control at step 1
+    hi[1, 3, 0] = -INF  # element 1: likewise, by its upper limit
+    for method in ("solve", "iterate"):
+        sol = getattr(_di_mpc(u_lower=lo, u_upper=hi), method)(x0, xr, ur)
+        assert sol.status.reason.tolist() == [int(Reason.INFEASIBLE_BOUNDS)] * 2 + [0], method
+        assert bool(sol.U[:2].isnan().all())
+        ref = torch.tensor(_bvls(X0S[2], N5, -0.5, INF), dtype=D)
+        torch.testing.assert_close(sol.U[2, :, 0], ref, rtol=0, atol=1e-6)
+
+
+def test_bad_state_and_iteration_arguments_are_named():
+    mpc = _di_mpc()
+    x0, xr, ur = _di_problem(1)
+    with pytest.raises(ValueError, match="'x0'.*\\(\\*, 2\\)"):
+        mpc.solve(torch.tensor(1.0, dtype=D), xr, ur)  # a 0-d state (was expand's TypeError)
+    with pytest.raises(TypeError, match="'x0'.*floating"):
+        mpc.solve(x0.long(), xr, ur)  # (was blamed on 'x_ref')
+    with pytest.raises(TypeError, match="'x_ref'.*floating"):
+        mpc.solve(x0, xr.long(), ur)
+    for kw, err in (({"max_iter": "a"}, TypeError), ({"max_iter": 0}, ValueError),
+                    ({"line_search_steps": 2.5}, TypeError), ({"tol": -1.0}, ValueError),
+                    ({"tol": math.nan}, ValueError), ({"tol": "1e-8"}, TypeError)):
+        with pytest.raises(err, match=f"'{next(iter(kw))}'"):
+            mpc.iterate(x0, xr, ur, **kw)
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+def test_pose_mpc_names_its_own_arguments(frame):
+    """PoseMPC's errors name X / X_ref / T_ref and PoseMPC (the local frame raised a raw matmul error for
+    batches that do not broadcast; a wrong T_ref was reported as ErrorStateMPC's 'u_ref')."""
+    mpc = PoseMPC(frame, N8, DT8, QW, RW)
+    X0, X, T = _pose_problem(3, 5)
+    with pytest.raises(ValueError, match="PoseMPC.solve.*X \\(2,\\), X_ref \\(3,\\)"):
+        mpc.solve(X0[:2], X, T)
+    with pytest.raises(ValueError, match="PoseMPC.solve: argument 'T_ref'.*\\(\\*B, 8, 6\\)"):
+        mpc.solve(X0, X, T[..., :3])
