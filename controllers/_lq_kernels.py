@@ -54,6 +54,12 @@ def _tsel(x: torch.Tensor, lo: int, hi: int) -> torch.Tensor:
     return x if x.shape[1] == 1 else x[:, lo:hi]
 
 
+def _bsize(*sizes: int) -> int:
+    """The common leading (batch) size of parts that are shared (1) or batched: 0 when any part is an empty
+    batch (a shared part then expands to no elements), else the largest."""
+    return 0 if 0 in sizes else max(sizes)
+
+
 def _expand_bt(x: torch.Tensor, b: int, T: int) -> torch.Tensor:
     return x.expand(b, T, *x.shape[2:])
 
@@ -73,7 +79,7 @@ def assemble_dynamics(A, B, c, bs: torch.Size) -> torch.Tensor:
     """The dynamics part of :func:`assemble`: ``F̃ = [[B, A, c], [0, 0, 1]]``."""
     n, m = A.shape[-1], B.shape[-1]
     A, B, c = flat(A, bs, 2), flat(B, bs, 2), flat(c, bs, 1)
-    bF = max(A.shape[0], B.shape[0], 1 if c is None else c.shape[0])
+    bF = _bsize(A.shape[0], B.shape[0], 1 if c is None else c.shape[0])
     TF = max(A.shape[1], B.shape[1], 1 if c is None else c.shape[1])
     dt, dev = A.dtype, A.device
     top = [_expand_bt(B, bF, TF), _expand_bt(A, bF, TF)]
@@ -93,7 +99,7 @@ def assemble_cost(Q, R, N, q, r, T: int, bs: torch.Size) -> tuple[torch.Tensor, 
     Qs = _tsel(Q, 0, T)
     qs = None if q is None else _tsel(q, 0, T)
     parts = [Qs, R] + [v for v in (N, qs, r) if v is not None]
-    bC = max(v.shape[0] for v in parts)
+    bC = _bsize(*(v.shape[0] for v in parts))
     TC = max(v.shape[1] for v in parts)
     z = lambda *sh: torch.zeros(bC, TC, *sh, dtype=dt, device=dev)
     Rr, Qq = _expand_bt(R, bC, TC), _expand_bt(Qs, bC, TC)
@@ -108,7 +114,7 @@ def assemble_cost(Q, R, N, q, r, T: int, bs: torch.Size) -> tuple[torch.Tensor, 
 
     QT = Q[:, -1]
     qT = None if q is None else q[:, -1]
-    bV = max(QT.shape[0], 1 if qT is None else qT.shape[0])
+    bV = _bsize(QT.shape[0], 1 if qT is None else qT.shape[0])
     VT = torch.zeros(bV, n + 1, n + 1, dtype=dt, device=dev)
     VT[:, :n, :n] = QT
     if qT is not None:

@@ -42,8 +42,9 @@ is solved on the linearized error system either
 linearization trajectory is a rollout of the current controls; the cost is expanded to first order in
 ``δx`` (``x ⊟ x^d ≈ ē + J δx`` with ``J = ∂((x̄ ⊞ δ) ⊟ x^d)/∂δ`` by autograd, a Gauss–Newton model),
 the QP gives a step, a backtracking line search on the true cost accepts it, and iterations stop when the
-projected gradient of the true cost (``‖U − clip(U − ∇J)‖``, relative) is below ``tol``: only then is
-an element ``CONVERGED``.
+model about the current point can lower the cost, within the limits, by at most ``tol`` times the cost (a
+duality bound, :func:`_gap_bound`: invariant under a common scaling of the weights, zero at a KKT point):
+only then is an element ``CONVERGED``.
 
 **Gradients.**  Every output is a differentiable function of ``x0``, the references, the weights, the
 limits and any tensor the model's ``f`` closes over: the linearization is autograd through the model
@@ -51,13 +52,15 @@ and the closed-form G's; the Riccati path uses the implicit LQ gradient; the QP 
 autograd, the equality-constrained QP on the active set that :func:`box_qp` found (clamped controls
 fixed at their bounds): the implicit-function gradient of the box QP wherever strict complementarity
 holds.  In :meth:`~ErrorStateMPC.iterate` the same is done at the returned point, with the
-Gauss–Newton Hessian.
+Gauss–Newton Hessian (``x0`` entering as the model's initial deviation), as a step whose value is
+cancelled: the returned values are the same with and without gradients.
 
 **Status** per element (:class:`~controllers.problem.Reason`): ``NONFINITE_INPUT`` for a NaN/inf in one
 element's state, reference, batched weight or tensor limit, ``NOT_POSITIVE_DEFINITE`` for a batched weight
-that is not PSD (Q, P) / PD (R), ``INFEASIBLE_BOUNDS`` where ``u_lower > u_upper`` (such an element's
-outputs are NaN, the others are solved as if alone), ``SINGULAR_QUU`` where the QP Hessian is not positive
-definite, ``MAX_ITERATIONS``/``STALLED`` where the box QP or the iteration did not certify its point.
+that is not PSD (Q, P) / PD (R), ``INFEASIBLE_BOUNDS`` where ``u_lower > u_upper``, ``u_lower = +inf`` or
+``u_upper = -inf`` (such an element's outputs are NaN, the others are solved as if alone), ``SINGULAR_QUU``
+where the QP Hessian is not positive definite, ``MAX_ITERATIONS``/``STALLED`` where the box QP or the
+iteration did not certify its point.
 Each element keeps its first failure in that order (:func:`first_failure`): no later stage overwrites it.
 A state off the manifold, a shared weight that is not finite and symmetric PSD/PD, and an argument of the
 wrong type or shape are a ``TypeError``/``ValueError`` naming the argument.
@@ -79,6 +82,7 @@ from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
 from controllers.problem import GradMode, LQProblem, Reason, SolverStatus
+from torchlie._batch import check_tensor
 
 __all__ = [
     "ManifoldSystem",
@@ -346,8 +350,8 @@ class ErrorStateSolution:
         cost: ``(*B,)`` the objective of the predicted plan (Eq. 15 on the linear model; the true cost in
             :meth:`~ErrorStateMPC.iterate`).
         status: per-element :class:`~controllers.problem.SolverStatus`.
-        kkt_residual: ``(*B,)`` the QP's (or the iteration's) certificate residual; 0 for the unconstrained
-            closed forms.
+        kkt_residual: ``(*B,)`` the QP's certificate residual (0 for the unconstrained closed forms); in
+            :meth:`~ErrorStateMPC.iterate`, the gap bound relative to the cost at the returned point.
         clamped: ``(*B, N, m)`` bool, controls held at a limit.
         x: in :meth:`~ErrorStateMPC.iterate`, the rolled-out states (batch ``(*B, N+1)``); else None.
     """
@@ -427,6 +431,9 @@ def _limit(b, name: str, fn: str, N: int, m: int, own: bool):
     if not isinstance(b, Tensor):
         if math.isnan(b):
             raise ValueError(f"{fn}: argument '{name}' is NaN (use ±inf or None for no limit)")
+        if b == (math.inf if name == "u_lower" else -math.inf):
+            raise ValueError(f"{fn}: argument '{name}' is {b} (no control satisfies it; use "
+                             f"{'-inf' if name == 'u_lower' else 'inf'} or None for no limit)")
         return float(b)
     if not b.dtype.is_floating_point:
         raise TypeError(f"{fn}: argument '{name}' must have a floating dtype, got {b.dtype}")
@@ -435,6 +442,22 @@ def _limit(b, name: str, fn: str, N: int, m: int, own: bool):
         raise ValueError(f"{fn}: argument '{name}' must broadcast to (*B, N, m) = (*B, {N}, {m}) "
                          f"(e.g. ({m},), ({N}, {m}) or (B, 1, {m})), got {sh}")
     return b
+
+
+def _check_options(fn: str, *, tol, **counts) -> None:
+    """The iteration options of :meth:`ErrorStateMPC.iterate`: counts are ints (``TypeError``) ≥ 1, ``tol``
+    None or a positive finite real (``ValueError`` naming the argument)."""
+    for name, v in counts.items():
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise TypeError(f"{fn}: argument '{name}' must be an int, got {type(v).__name__}")
+        if v < 1:
+            raise ValueError(f"{fn}: argument '{name}' must be >= 1, got {v}")
+    if tol is None:
+        return
+    if isinstance(tol, bool) or not isinstance(tol, (int, float)):
+        raise TypeError(f"{fn}: argument 'tol' must be None or a real number, got {type(tol).__name__}")
+    if not (0 < tol < math.inf):
+        raise ValueError(f"{fn}: argument 'tol' must be positive and finite, got {tol!r}")
 
 
 class ErrorStateMPC:
@@ -451,10 +474,11 @@ class ErrorStateMPC:
             ``NOT_POSITIVE_DEFINITE`` (NaN outputs), the others are solved as if alone.
         u_lower, u_upper: limits broadcastable to ``(*B, N, m)`` (default the system's ``u_lower``/
             ``u_upper`` when it has them, else none); ``None`` or ±inf for no limit.  A float limit that
-            is NaN, or float limits with ``u_lower > u_upper``, are a ``ValueError``; tensor limits are
-            checked per element at solve time (as :func:`~controllers.ilqr.ilqr` does, no host sync): a
-            NaN entry makes that element ``NONFINITE_INPUT``, ``u_lower > u_upper`` anywhere makes it
-            ``INFEASIBLE_BOUNDS`` (NaN outputs either way).
+            is NaN, ``u_lower = +inf``, ``u_upper = -inf``, or float limits with ``u_lower > u_upper``,
+            are a ``ValueError``; tensor limits are checked per element at solve time (as
+            :func:`~controllers.ilqr.ilqr` does, no host sync): a NaN entry makes that element
+            ``NONFINITE_INPUT``; ``u_lower > u_upper``, ``u_lower = +inf`` or ``u_upper = -inf`` anywhere
+            makes it ``INFEASIBLE_BOUNDS`` (NaN outputs either way).
         solver: ``"auto"``, ``"qp"`` (condensed, Eq. 28/31) or ``"riccati"`` (no limits only).
         grad: :class:`~controllers.problem.GradMode` (``"implicit"``, ``"none"``; ``"unrolled"`` is
             accepted by the Riccati path and treated as implicit by the QP path).
@@ -539,12 +563,13 @@ class ErrorStateMPC:
     def _bounds(self, u_bar: Tensor, batch) -> tuple[Tensor, Tensor, Tensor]:
         """Limits on ``δu = u − ū``, ``(*B, N, m)`` each (±inf where unbounded), and the ``(*B,)`` reason
         codes of the limits: ``NONFINITE_INPUT`` where an entry is NaN, ``INFEASIBLE_BOUNDS`` where
-        ``u_lower > u_upper``; such an element gets open limits (its outputs are NaN-ed by the caller)."""
+        ``u_lower > u_upper``, ``u_lower = +inf`` or ``u_upper = -inf`` (no feasible control); such an element
+        gets open limits (its outputs are NaN-ed by the caller)."""
         lo, hi = self._limits(u_bar)
         shape = (*batch, self.N, self.m)
         lo, hi = lo.expand(shape), hi.expand(shape)
         nan = (torch.isnan(lo) | torch.isnan(hi)).flatten(-2).any(-1)
-        crossed = (lo > hi).flatten(-2).any(-1)
+        crossed = ((lo > hi) | (lo == math.inf) | (hi == -math.inf)).flatten(-2).any(-1)  # as ilqr's rule
         reason = torch.where(nan, int(Reason.NONFINITE_INPUT),
                              torch.where(crossed, int(Reason.INFEASIBLE_BOUNDS), 0))
         bad = (reason != 0)[..., None, None]
@@ -567,6 +592,11 @@ class ErrorStateMPC:
                 kind = "a ProductState" if product else "a torch.Tensor"
                 raise TypeError(f"{fn}: argument '{name}' must be a point of {M!r} ({kind}), "
                                 f"got {type(v).__name__}")
+            if not product:
+                check_tensor(v, tuple(M.event_shape), name, fn)  # floating, trailing shape of one point
+            elif not all(leaf.dtype.is_floating_point for leaf in _leaves(v)):
+                raise TypeError(f"{fn}: argument '{name}' must have floating components, got "
+                                f"{[leaf.dtype for leaf in _leaves(v)]}")
         if not isinstance(u_ref, Tensor):
             raise TypeError(f"{fn}: argument 'u_ref' must be a torch.Tensor, got {type(u_ref).__name__}")
         if u_ref.dim() < 2 or u_ref.shape[-2:] != (N, m):
@@ -710,48 +740,9 @@ class ErrorStateMPC:
             zeros = torch.zeros(batch, dtype=dtype, device=dev)
             clamped = torch.zeros(*batch, N, m, dtype=torch.bool, device=dev)
             return sol.u, sol.x, sol.cost, reason, zeros, clamped
-        Su, free_x = _condense(es, dx0)  # (*B, N+1, n, Nm), (*B, N+1, n): δX = Su δU + free_x
-        QSu = (Qs @ Su).reshape(*batch, (N + 1) * n, N * m)  # Q̄ S_u, block rows
-        SuT = Su.reshape(*batch, (N + 1) * n, N * m).transpose(-1, -2)
+        Su, free_x, H, g = _condensed_qp(es, dx0, Qs, R, q, r)
+        dU, reason, kkt, clamped = self._qp_solve(H, g, lo, hi, warm, grad)
         Rb = R.expand(*batch, m, m)
-        eyeN = torch.eye(N, dtype=dtype, device=dev)
-        Rbar = (eyeN[:, None, :, None] * Rb[..., None, :, None, :]).reshape(*batch, N * m, N * m)
-        H = SuT @ QSu + Rbar
-        Qe = (Qs @ free_x.unsqueeze(-1)).squeeze(-1)
-        if q is not None:
-            Qe = Qe + q
-        g = (SuT @ Qe.reshape(*batch, (N + 1) * n, 1)).squeeze(-1)
-        if r is not None:
-            g = g + r.reshape(*batch, N * m)
-        # the unconstrained minimizer (Eq. 31); where it respects the limits it is the constrained one
-        L, info = torch.linalg.cholesky_ex(H)
-        dU = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
-        reason = torch.where(info == 0, 0, int(Reason.SINGULAR_QUU))
-        clamped = torch.zeros(*batch, N * m, dtype=torch.bool, device=dev)
-        with torch.no_grad():
-            kkt = (H @ dU.unsqueeze(-1)).squeeze(-1).add_(g).norm(dim=-1)
-        if self.bounded:
-            lo = lo.expand(*batch, N, m).reshape(*batch, N * m)
-            hi = hi.expand(*batch, N, m).reshape(*batch, N * m)
-            with torch.no_grad():
-                viol = ((dU < lo) | (dU > hi)).any(-1)  # (*B,): elements whose Eq. 31 breaks a limit
-            if bool(viol.all()):
-                dU, rbox, kkt, clamped = self._box(H, g, lo, hi, dU, warm, grad)
-                reason = first_failure(reason, rbox)
-            elif bool(viol.any()):  # the box QP only for those; the others keep the closed form
-                idx = viol.reshape(-1).nonzero().squeeze(-1)
-                nb = idx.shape[0]
-
-                def sub(t):
-                    return t.expand(*batch, *t.shape[len(batch):]).reshape(-1, *t.shape[len(batch):])[idx]
-                w = None if warm is None else sub(warm.reshape(*warm.shape[:-2], N * m))
-                dUs, rs, ks, cs = self._box(sub(H), sub(g), sub(lo), sub(hi), sub(dU), w, grad)
-                flat = dU.reshape(-1, N * m).index_copy(0, idx, dUs)
-                dU = flat.reshape(*batch, N * m)
-                rs = first_failure(reason.reshape(-1)[idx], rs.to(reason.dtype).reshape(nb))
-                reason = reason.reshape(-1).index_copy(0, idx, rs).reshape(batch)
-                kkt = kkt.reshape(-1).index_copy(0, idx, ks.to(kkt.dtype).reshape(nb)).reshape(batch)
-                clamped = clamped.reshape(-1, N * m).index_copy(0, idx, cs).reshape(*batch, N * m)
         dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
         dUr = dU.reshape(*batch, N, m)
         cost = ((dX.unsqueeze(-2) @ Qs @ dX.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1) \
@@ -761,6 +752,43 @@ class ErrorStateMPC:
         if r is not None:
             cost = cost + 2 * (r * dUr).sum((-2, -1))
         return dUr, dX, cost, reason.to(torch.int64), kkt, clamped.reshape(*batch, N, m)
+
+    def _qp_solve(self, H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, warm: Tensor | None, grad: GradMode):
+        """``min δUᵀHδU + 2gᵀδU`` over ``lo ≤ δU ≤ hi`` (``(*B, N, m)`` limits): the closed form (Eq. 31)
+        where it respects the limits, the certified box QP (:meth:`_box`) for the elements where it does not.
+
+        Returns ``(δU (*B, N m), reason (*B,), kkt (*B,), clamped (*B, N m))``."""
+        N, m = self.N, self.m
+        batch = g.shape[:-1]
+        L, info = torch.linalg.cholesky_ex(H)
+        dU = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
+        reason = torch.where(info == 0, 0, int(Reason.SINGULAR_QUU))
+        clamped = torch.zeros(*batch, N * m, dtype=torch.bool, device=g.device)
+        with torch.no_grad():
+            kkt = (H @ dU.unsqueeze(-1)).squeeze(-1).add_(g).norm(dim=-1)
+        if not self.bounded:
+            return dU, reason, kkt, clamped
+        lo = lo.expand(*batch, N, m).reshape(*batch, N * m)
+        hi = hi.expand(*batch, N, m).reshape(*batch, N * m)
+        with torch.no_grad():
+            viol = ((dU < lo) | (dU > hi)).any(-1)  # (*B,): elements whose Eq. 31 breaks a limit
+        if bool(viol.all()):
+            dU, rbox, kkt, clamped = self._box(H, g, lo, hi, dU, warm, grad)
+            return dU, first_failure(reason, rbox), kkt, clamped
+        if bool(viol.any()):  # the box QP only for those; the others keep the closed form
+            idx = viol.reshape(-1).nonzero().squeeze(-1)
+            nb = idx.shape[0]
+
+            def sub(t):
+                return t.expand(*batch, *t.shape[len(batch):]).reshape(-1, *t.shape[len(batch):])[idx]
+            w = None if warm is None else sub(warm.reshape(*warm.shape[:-2], N * m))
+            dUs, rs, ks, cs = self._box(sub(H), sub(g), sub(lo), sub(hi), sub(dU), w, grad)
+            dU = dU.reshape(-1, N * m).index_copy(0, idx, dUs).reshape(*batch, N * m)
+            rs = first_failure(reason.reshape(-1)[idx], rs.to(reason.dtype).reshape(nb))
+            reason = reason.reshape(-1).index_copy(0, idx, rs).reshape(batch)
+            kkt = kkt.reshape(-1).index_copy(0, idx, ks.to(kkt.dtype).reshape(nb)).reshape(batch)
+            clamped = clamped.reshape(-1, N * m).index_copy(0, idx, cs).reshape(*batch, N * m)
+        return dU, reason, kkt, clamped
 
     def _box(self, H, g, lo, hi, start, warm, grad):
         """The box QP (28) from the clipped unconstrained minimizer (or the warm start), certified by
@@ -815,77 +843,45 @@ class ErrorStateMPC:
     # -- §V-D: iterate about rollouts ------------------------------------------------------------------
     def iterate(self, x0, x_ref, u_ref: Tensor, *, u_init: Tensor | None = None, max_iter: int = 50,
                 tol: float | None = None, line_search_steps: int = 12) -> ErrorStateSolution:
-        """The iterated variant of §V-D (module docstring): returns a point certified by the projected
-        gradient of the true cost (``CONVERGED``), or ``MAX_ITERATIONS``/``STALLED`` honestly.
+        """The iterated variant of §V-D (module docstring): returns a point certified by the relative
+        objective gap of its Gauss–Newton model (``CONVERGED``), or ``MAX_ITERATIONS``/``STALLED`` honestly.
+
+        The certificate at the returned controls ``U``: with ``J(U)`` the true cost and ``γ``, ``H`` the
+        gradient and Gauss–Newton Hessian of the model about ``U``'s rollout, the bound of
+        :func:`_gap_bound` on how much the model can still decrease inside the limits is at most
+        ``tol · J(U)`` (``kkt_residual`` is that ratio).  It is invariant under a common scaling of the
+        weights and attainable in floating point (zero at a KKT point of the model).  With gradients
+        enabled the returned values are the same (bit for bit): the derivative is that of one more
+        Gauss–Newton step at ``U``, whose value is cancelled (an implicit-function step; the model's
+        Hessian stands for the true one).
 
         ``u_init`` ``(*B, N, m)``: the first linearization controls (default ``u_ref`` clipped to the
-        limits); ``tol``: relative projected-gradient tolerance (default ``sqrt(eps)`` of the dtype)."""
+        limits); ``tol``: the relative gap tolerance (default ``1e3 eps`` of the dtype: the cost is optimal
+        to a thousand units of rounding); ``max_iter``
+        Gauss–Newton steps at most, each with ``line_search_steps`` step lengths ``1, ½, …`` at most."""
         fn = "ErrorStateMPC.iterate"
+        _check_options(fn, max_iter=max_iter, line_search_steps=line_search_steps, tol=tol)
         x0, x_ref, u_ref, batch, Qs, R, lo_abs, hi_abs, _, reason0 = self._inputs(x0, x_ref, u_ref, None, fn)
         ok = reason0 == 0
         lo_abs, hi_abs = lo_abs + u_ref, hi_abs + u_ref  # absolute (±inf stays ±inf)
-        M, N, m = self.manifold, self.N, self.m
         dtype, dev = u_ref.dtype, u_ref.device
-        tol = torch.finfo(dtype).eps ** 0.5 if tol is None else tol
-        Rb = R.expand(*batch, m, m)
-
-        def true_cost(x, U):
-            e = M.boxminus(x, x_ref, check=False)
-            du = U - u_ref
-            return ((e.unsqueeze(-2) @ Qs @ e.unsqueeze(-1)).sum((-3, -2, -1))
-                    + (du.unsqueeze(-2) @ Rb.unsqueeze(-3) @ du.unsqueeze(-1)).sum((-3, -2, -1))), e
-
+        tol = 1e3 * torch.finfo(dtype).eps if tol is None else tol
         if u_init is not None:
             u_init = self._warm(u_init, u_ref, batch, fn, "u_init") + u_ref.detach()
         with torch.no_grad():
             U = (u_ref if u_init is None else u_init).detach()
             U = torch.minimum(torch.maximum(U, lo_abs.detach()), hi_abs.detach())
-            x0d = _detach(x0)
-            xr, ur = _detach(x_ref), u_ref.detach()
-            x = manifold_rollout(self.system, x0d, U)
-            J, _ = true_cost(x, U)
-            reason = torch.full(batch, int(Reason.MAX_ITERATIONS), dtype=torch.int64, device=dev)
-            done = ~ok
-            iters = torch.zeros(batch, dtype=torch.int64, device=dev)
-            kkt = torch.full(batch, torch.inf, dtype=dtype, device=dev)
-            for _ in range(max_iter):
-                dU, gnorm, scale = self._gn_step(x, U, xr, ur, lo_abs.detach(), hi_abs.detach(), Qs.detach(),
-                                                 R.detach(), grad_mode=False)
-                kkt = torch.where(done, kkt, gnorm / scale)
-                conv = (gnorm <= tol * scale) & ~done
-                reason = torch.where(conv, int(Reason.CONVERGED), reason)
-                done = done | conv
-                if bool(done.all()):
-                    break
-                # backtracking on the true cost, all step lengths of the batch at once per trial
-                alpha = torch.ones(batch, dtype=dtype, device=dev)
-                accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
-                newU, newx, newJ = U, x, J
-                for _ls in range(line_search_steps):
-                    Ut = torch.minimum(torch.maximum(U + alpha[..., None, None] * dU, lo_abs.detach()),
-                                       hi_abs.detach())
-                    xt = manifold_rollout(self.system, x0d, Ut)
-                    Jt, _ = true_cost(xt, Ut)
-                    good = (Jt < J) & ~accepted & ~done & torch.isfinite(Jt)
-                    newU = torch.where(good[..., None, None], Ut, newU)
-                    newx = _where_point(M, good.unsqueeze(-1).expand(*batch, N + 1), xt, newx)
-                    newJ = torch.where(good, Jt, newJ)
-                    accepted = accepted | good
-                    if bool((accepted | done).all()):
-                        break
-                    alpha = torch.where(accepted, alpha, alpha * 0.5)
-                stalled = ~accepted & ~done
-                reason = torch.where(stalled, int(Reason.STALLED), reason)
-                done = done | stalled
-                iters = iters + accepted.to(torch.int64)
-                U, x, J = newU, newx, newJ
-        # the returned point, differentiable: one Gauss-Newton step at the (detached) solution
-        need_grad = self.grad is not GradMode.NONE and torch.is_grad_enabled()
-        if need_grad:
-            dU, _, _ = self._gn_step(x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, R, grad_mode=True)
-            U = U + dU
-            x = manifold_rollout(self.system, x0, U)
-        Jfin, e = true_cost(x, U)
+            U, reason, iters, kkt = self._gauss_newton(_detach(x0), _detach(x_ref), u_ref.detach(), U,
+                                                       lo_abs.detach(), hi_abs.detach(), Qs.detach(),
+                                                       R.detach(), ~ok, max_iter, tol, line_search_steps)
+        if self.grad is not GradMode.NONE and torch.is_grad_enabled():
+            # the implicit step: its value is cancelled, its derivative is the model's dU*/d(inputs)
+            xd = manifold_rollout(self.system, _detach(x0), U)
+            dU, _ = self._gn_step(xd, U, x0, x_ref, u_ref, lo_abs, hi_abs, Qs, R, grad_mode=True)
+            dU = torch.where(torch.isfinite(dU), dU, torch.zeros((), dtype=dtype, device=dev))
+            U = U + (dU - dU.detach())
+        x = manifold_rollout(self.system, x0, U)
+        Jfin, e = self._true_cost(x, U, x_ref, u_ref, Qs, R)
         reason = first_failure(reason0, reason)
         nan = torch.full((), torch.nan, dtype=dtype, device=dev)
         U = torch.where(ok[..., None, None], U, nan)
@@ -895,38 +891,125 @@ class ErrorStateMPC:
                                   status=SolverStatus.from_reason(reason, iters),
                                   kkt_residual=torch.where(ok, kkt, nan), clamped=clamped, x=x)
 
-    def _gn_step(self, x, U, x_ref, u_ref, lo_abs, hi_abs, Qs, R, *, grad_mode: bool):
-        """The Gauss–Newton QP step about the rollout ``(x, U)`` and the projected-gradient norm at ``U``."""
-        M, N, m = self.manifold, self.N, self.m
+    def _true_cost(self, x, U, x_ref, u_ref, Qs, R):
+        """``(J (*B,), e (*B, N+1, n))``: the cost of Eq. 15 of the rollout ``x`` of ``U``, and its errors."""
+        e = self.manifold.boxminus(x, x_ref, check=False)
+        du = U - u_ref
+        Rb = R.expand(*U.shape[:-2], self.m, self.m)
+        return ((e.unsqueeze(-2) @ Qs @ e.unsqueeze(-1)).sum((-3, -2, -1))
+                + (du.unsqueeze(-2) @ Rb.unsqueeze(-3) @ du.unsqueeze(-1)).sum((-3, -2, -1))), e
+
+    def _gauss_newton(self, x0, x_ref, u_ref, U, lo_abs, hi_abs, Qs, R, done, max_iter, tol, ls_steps):
+        """The Gauss–Newton iteration of :meth:`iterate` (no graph): the certificate at every point it
+        reaches (the last one included), steps by the model's QP and a backtracking line search on the true
+        cost (all step lengths of the batch at once per trial).  Returns ``(U, reason, iters, kkt)``."""
+        M, N = self.manifold, self.N
         batch = U.shape[:-2]
-        Rb = R.expand(*batch, m, m)
+        dtype, dev = U.dtype, U.device
+        x = manifold_rollout(self.system, x0, U)
+        J, _ = self._true_cost(x, U, x_ref, u_ref, Qs, R)
+        reason = torch.full(batch, int(Reason.MAX_ITERATIONS), dtype=torch.int64, device=dev)
+        iters = torch.zeros(batch, dtype=torch.int64, device=dev)
+        kkt = torch.full(batch, torch.inf, dtype=dtype, device=dev)
+        tiny = torch.finfo(dtype).tiny
+        for it in range(max_iter + 1):
+            dU, gap = self._gn_step(x, U, x0, x_ref, u_ref, lo_abs, hi_abs, Qs, R, grad_mode=False)
+            kkt = torch.where(done, kkt, gap / J.clamp_min(tiny))
+            conv = (gap <= tol * J) & ~done
+            reason = torch.where(conv, int(Reason.CONVERGED), reason)
+            done = done | conv
+            if it == max_iter or bool(done.all()):
+                break
+            alpha = torch.ones(batch, dtype=dtype, device=dev)
+            accepted = torch.zeros(batch, dtype=torch.bool, device=dev)
+            newU, newx, newJ = U, x, J
+            for _ls in range(ls_steps):
+                Ut = torch.minimum(torch.maximum(U + alpha[..., None, None] * dU, lo_abs), hi_abs)
+                xt = manifold_rollout(self.system, x0, Ut)
+                Jt, _ = self._true_cost(xt, Ut, x_ref, u_ref, Qs, R)
+                good = (Jt < J) & ~accepted & ~done & torch.isfinite(Jt)
+                newU = torch.where(good[..., None, None], Ut, newU)
+                newx = _where_point(M, good.unsqueeze(-1).expand(*batch, N + 1), xt, newx)
+                newJ = torch.where(good, Jt, newJ)
+                accepted = accepted | good
+                if bool((accepted | done).all()):
+                    break
+                alpha = torch.where(accepted, alpha, alpha * 0.5)
+            stalled = ~accepted & ~done
+            reason = torch.where(stalled, int(Reason.STALLED), reason)
+            done = done | stalled
+            iters = iters + accepted.to(torch.int64)
+            U, x, J = newU, newx, newJ
+        return U, reason, iters, kkt
+
+    def _gn_step(self, x, U, x0, x_ref, u_ref, lo_abs, hi_abs, Qs, R, *, grad_mode: bool):
+        """The Gauss–Newton model about the rollout ``(x, U)`` (``δx_0 = x0 ⊟ x_0``: zero, but it carries
+        ``x0``'s derivative): its QP step ``δU (*B, N, m)`` and the bound of :func:`_gap_bound` at ``U``
+        (the certificate, without a graph).  Built and solved in float64 for float32/half data."""
+        M, N, m = self.manifold, self.N, self.m
+        batch, dtype = U.shape[:-2], U.dtype
         es = error_system(self.system, x, U, jacobians=self.jacobians)
         e = M.boxminus(x, x_ref, check=False)  # (*B, N+1, n)
-        Jm = _boxminus_jacobian(M, x, x_ref)  # (*B, N+1, n, n)
+        Jm = _boxminus_jacobian(M, x, x_ref)  # (*B, N+1, n, n): the first order of the errors, exact
         Qt = Jm.transpose(-1, -2) @ Qs @ Jm
         q = (Jm.transpose(-1, -2) @ (Qs @ e.unsqueeze(-1))).squeeze(-1)
-        r = (Rb.unsqueeze(-3) @ (U - u_ref).unsqueeze(-1)).squeeze(-1)
-        dx0 = torch.zeros(*batch, self.n, dtype=U.dtype, device=U.device)
+        r = (R.expand(*batch, m, m).unsqueeze(-3) @ (U - u_ref).unsqueeze(-1)).squeeze(-1)
+        dx0 = M.boxminus(x0, time_index(M, x, 0), check=False).expand(*batch, self.n)
         lo, hi = lo_abs - U, hi_abs - U
-        # the condensed form even without limits: the certificate below needs S_u anyway
-        dU = self._solve_lq(es, dx0, Qt, R, q, r, lo, hi, None, solver="qp",
-                            grad=self.grad if grad_mode else GradMode.NONE)[0]
-        # gradient of the true cost w.r.t. U (exact: the first-order terms of the model are exact)
-        Su, _ = _condense(ErrorSystem(es.A, es.B, torch.zeros_like(es.c)), dx0)
-        grad = 2 * (torch.einsum("...kia,...ki->...a", Su, q) + r.reshape(*batch, N * m))
-        Uf = U.reshape(*batch, N * m)
-        proj = Uf - torch.minimum(torch.maximum(Uf - grad, lo_abs.reshape(*batch, N * m)),
-                                  hi_abs.reshape(*batch, N * m))
-        gnorm = proj.norm(dim=-1)
-        # the two halves of the gradient balance at an optimum: their sizes are the residual's scale
-        scale = 2 * torch.einsum("...kia,...ki->...a", Su, q).norm(dim=-1) + 2 * r.flatten(-2).norm(dim=-1) \
-            + torch.finfo(U.dtype).tiny
-        return dU, gnorm, scale.expand(batch)
+        data = (es.A, es.B, es.c, dx0, Qt, R, q, r, lo, hi)
+        if dtype in _REFINE_DTYPES:
+            data = tuple(t.to(torch.float64) for t in data)
+        A, B, c, dx0, Qt, R, q, r, lo, hi = data
+        _, _, H, g = _condensed_qp(ErrorSystem(A, B, c), dx0, Qt, R, q, r)
+        dU = self._qp_solve(H, g, lo, hi, None, self.grad if grad_mode else GradMode.NONE)[0]
+        with torch.no_grad():
+            gap = _gap_bound(H.detach(), g.detach(), lo.detach().reshape(g.shape),
+                             hi.detach().reshape(g.shape))
+        return dU.reshape(*batch, N, m).to(dtype), gap.to(dtype)
 
 
 #: above this many multiply-adds for the condensed Hessians of a batch (``B (N m)² (N+1) n``) a bounded
 #: solve goes through the Riccati form first and condenses only the elements that break a limit
 _RICCATI_FIRST_FLOPS = 3e7
+
+
+def _condensed_qp(es: ErrorSystem, dx0: Tensor, Qs: Tensor, R: Tensor, q: Tensor | None, r: Tensor | None):
+    """The condensed QP (Eq. 28) of Σ δxᵀQ_kδx + 2q_kᵀδx + δuᵀRδu + 2r_kᵀδu on the error system:
+    ``(S_u, free_x, H, g)`` with the cost ``δUᵀHδU + 2gᵀδU + const`` (:func:`_condense` for ``S_u``,
+    ``free_x``)."""
+    N, n, m = es.B.shape[-3], dx0.shape[-1], R.shape[-1]
+    batch = dx0.shape[:-1]
+    Su, free_x = _condense(es, dx0)  # (*B, N+1, n, Nm), (*B, N+1, n): δX = Su δU + free_x
+    QSu = (Qs @ Su).reshape(*batch, (N + 1) * n, N * m)  # Q̄ S_u, block rows
+    SuT = Su.reshape(*batch, (N + 1) * n, N * m).transpose(-1, -2)
+    Rb = R.expand(*batch, m, m)
+    eyeN = torch.eye(N, dtype=dx0.dtype, device=dx0.device)
+    Rbar = (eyeN[:, None, :, None] * Rb[..., None, :, None, :]).reshape(*batch, N * m, N * m)
+    H = SuT @ QSu + Rbar
+    Qe = (Qs @ free_x.unsqueeze(-1)).squeeze(-1)
+    if q is not None:
+        Qe = Qe + q
+    g = (SuT @ Qe.reshape(*batch, (N + 1) * n, 1)).squeeze(-1)
+    if r is not None:
+        g = g + r.reshape(*batch, N * m)
+    return Su, free_x, H, g
+
+
+def _gap_bound(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
+    """An upper bound on ``q(0) − min q`` for the convex QP ``q(d) = dᵀHd + 2gᵀd`` over ``lo ≤ d ≤ hi``
+    (``lo ≤ 0 ≤ hi``; ``(*B, k)`` vectors, ``H`` positive definite), by weak duality: with bound multipliers
+    ``λ`` taken from ``g`` at the bounds that ``0`` touches (``λ_i = g_i > 0`` where ``lo_i = 0``,
+    ``λ_i = g_i < 0`` where ``hi_i = 0``, else 0), ``q(d) ≥ −ρᵀH⁻¹ρ`` for every feasible ``d``, ``ρ = g − λ``
+    (the complementarity terms ``λ_i·(distance to its bound)`` vanish).  The bound is 0 exactly at a KKT
+    point and shrinks quadratically with the distance to it; it scales like the objective (so
+    ``bound ≤ tol · cost`` is invariant under a common scaling of the weights).  ``inf`` where ``H`` is not
+    positive definite."""
+    lam = torch.where((lo >= 0) & (g > 0), g, torch.zeros((), dtype=g.dtype, device=g.device))
+    lam = torch.where((hi <= 0) & (g < 0), g, lam)
+    rho = g - lam
+    L, info = torch.linalg.cholesky_ex(H)
+    z = torch.linalg.solve_triangular(L, rho.unsqueeze(-1), upper=False).squeeze(-1)
+    return torch.where(info == 0, (z * z).sum(-1), torch.inf)
 
 
 def _condense(es: ErrorSystem, dx0: Tensor) -> tuple[Tensor, Tensor]:

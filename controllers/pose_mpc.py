@@ -38,7 +38,7 @@ import math
 import torch
 from torch import Tensor
 
-from controllers._validate import all_finite
+from controllers._validate import all_finite, broadcast_batch
 from controllers.manifold_mpc import ErrorStateMPC, ErrorStateSolution
 from controllers.problem import GradMode
 from torchlie import magnus, se3
@@ -199,6 +199,10 @@ class PoseMPC:
         if T_ref.dtype != X.dtype or T_ref.device != X.device:
             raise TypeError(f"{fn}: argument 'T_ref' must have X's dtype and device ({X.dtype}, {X.device}), "
                             f"got {T_ref.dtype} on {T_ref.device}; cast explicitly")
+        if T_ref.dim() < 2 or T_ref.shape[-2:] != (self.N, 6):
+            raise ValueError(f"{fn}: argument 'T_ref' must have shape (*B, N, 6) = (*B, {self.N}, 6), "
+                             f"got {tuple(T_ref.shape)}")
+        broadcast_batch(fn, {"X": X.shape[:-2], "X_ref": X_ref.shape[:-3], "T_ref": T_ref.shape[:-2]})
         if self.frame == "se3":
             return self._mpc.solve(X, X_ref, T_ref, warm=warm)
         if self.frame == "world":

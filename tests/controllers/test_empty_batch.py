@@ -80,3 +80,51 @@ def test_riccati_empty_batch(grad):
     assert gx.shape == (0, 2)
     for g in (gA, gQ):
         assert g is None or not bool(g.any())
+
+
+class _DoubleIntegrator:
+    m = 1
+
+    def __init__(self, dt=0.5):
+        from torchlie.manifolds import Rn  # noqa: PLC0415
+
+        self.manifold, self.n, self.dt = Rn(2), 2, dt
+
+    def f(self, x, u):
+        return torch.cat([x[..., 1:2], u], -1)
+
+
+@pytest.mark.parametrize("method", ["solve", "iterate"])
+@pytest.mark.parametrize("limited", [False, True])
+@pytest.mark.parametrize("requires_grad", [False, True])
+def test_error_state_mpc_empty_batch(method, limited, requires_grad):
+    """Without limits the Riccati path saw a stage weight batched to 0 elements beside a shared R and
+    expanded it to one element (``_lq_kernels``: RuntimeError)."""
+    from controllers.manifold_mpc import ErrorStateMPC  # noqa: PLC0415
+
+    Q = torch.tensor([1.0, 0.1], dtype=D, requires_grad=requires_grad)
+    x0 = torch.zeros(0, 2, dtype=D, requires_grad=requires_grad)
+    lim = dict(u_lower=-1.0, u_upper=1.0) if limited else {}
+    mpc = ErrorStateMPC(_DoubleIntegrator(), T, Q, torch.tensor([0.1], dtype=D), **lim)
+    sol = getattr(mpc, method)(x0, torch.zeros(0, T + 1, 2, dtype=D), torch.zeros(0, T, 1, dtype=D))
+    assert sol.U.shape == (0, T, 1) and sol.u.shape == (0, 1) and sol.dx.shape == (0, T + 1, 2)
+    assert sol.cost.shape == sol.status.reason.shape == sol.kkt_residual.shape == (0,)
+    if requires_grad:
+        gx, gQ = torch.autograd.grad(sol.U.sum() + sol.cost.sum(), (x0, Q), allow_unused=True)
+        assert gx is None or gx.shape == (0, 2)
+        assert gQ is None or not bool(gQ.any())
+
+
+@pytest.mark.parametrize("frame", ["world", "local", "se3"])
+@pytest.mark.parametrize("limited", [False, True])
+def test_pose_mpc_empty_batch(frame, limited):
+    from controllers.pose_mpc import PoseMPC  # noqa: PLC0415
+
+    Q = torch.ones(6, dtype=D, requires_grad=True)
+    lim = dict(u_upper=1.0) if limited else {}
+    eye = torch.eye(4, dtype=D)
+    sol = PoseMPC(frame, T, 0.1, Q, torch.ones(6, dtype=D), **lim).solve(
+        eye.expand(0, 4, 4), eye.expand(0, T + 1, 4, 4), torch.zeros(0, T, 6, dtype=D))
+    assert sol.U.shape == (0, T, 6) and sol.status.reason.shape == (0,)
+    (gQ,) = torch.autograd.grad(sol.U.sum(), Q, allow_unused=True)
+    assert gQ is None or not bool(gQ.any())

@@ -489,3 +489,144 @@ def test_iterate_reports_input_failures_first():
     for i in (0, 1):
         torch.testing.assert_close(sol.U[i, :, 0], torch.tensor(_bvls(X0S[i], N5, -1.0, 1.0), dtype=D),
                                    rtol=0, atol=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------------
+# adversarial round 2: infinite limits that admit no control, argument errors that name the argument
+# ------------------------------------------------------------------------------------------------------
+
+
+def test_a_lower_limit_of_plus_inf_or_an_upper_of_minus_inf_is_infeasible():
+    """ilqr's rule: ``u ≥ +inf`` (or ``u ≤ -inf``) has no solution.  A float limit is a ValueError; a tensor
+    limit that says so at one step makes that element INFEASIBLE_BOUNDS (the other elements solved as if
+    alone: the bounded least-squares minimizer).  Before, such a limit was dropped (an unconstrained plan,
+    CONVERGED) or gave STALLED with inf in the plan."""
+    for kw in ({"u_lower": math.inf}, {"u_upper": -math.inf}):
+        with pytest.raises(ValueError, match=f"'{next(iter(kw))}'"):
+            _di_mpc(**kw)
+    x0, xr, ur = _di_problem()
+    lo = torch.full((3, N5, 1), -0.5, dtype=D)
+    hi = torch.full((3, N5, 1), INF, dtype=D)
+    lo[0, 1, 0] = INF  # element 0: no feasible control at step 1
+    hi[1, 3, 0] = -INF  # element 1: likewise, by its upper limit
+    for method in ("solve", "iterate"):
+        sol = getattr(_di_mpc(u_lower=lo, u_upper=hi), method)(x0, xr, ur)
+        assert sol.status.reason.tolist() == [int(Reason.INFEASIBLE_BOUNDS)] * 2 + [0], method
+        assert bool(sol.U[:2].isnan().all())
+        ref = torch.tensor(_bvls(X0S[2], N5, -0.5, INF), dtype=D)
+        torch.testing.assert_close(sol.U[2, :, 0], ref, rtol=0, atol=1e-6)
+
+
+def test_bad_state_and_iteration_arguments_are_named():
+    mpc = _di_mpc()
+    x0, xr, ur = _di_problem(1)
+    with pytest.raises(ValueError, match="'x0'.*\\(\\*, 2\\)"):
+        mpc.solve(torch.tensor(1.0, dtype=D), xr, ur)  # a 0-d state (was expand's TypeError)
+    with pytest.raises(TypeError, match="'x0'.*floating"):
+        mpc.solve(x0.long(), xr, ur)  # (was blamed on 'x_ref')
+    with pytest.raises(TypeError, match="'x_ref'.*floating"):
+        mpc.solve(x0, xr.long(), ur)
+    for kw, err in (({"max_iter": "a"}, TypeError), ({"max_iter": 0}, ValueError),
+                    ({"line_search_steps": 2.5}, TypeError), ({"tol": -1.0}, ValueError),
+                    ({"tol": math.nan}, ValueError), ({"tol": "1e-8"}, TypeError)):
+        with pytest.raises(err, match=f"'{next(iter(kw))}'"):
+            mpc.iterate(x0, xr, ur, **kw)
+
+
+@pytest.mark.parametrize("frame", FRAMES)
+def test_pose_mpc_names_its_own_arguments(frame):
+    """PoseMPC's errors name X / X_ref / T_ref and PoseMPC (the local frame raised a raw matmul error for
+    batches that do not broadcast; a wrong T_ref was reported as ErrorStateMPC's 'u_ref')."""
+    mpc = PoseMPC(frame, N8, DT8, QW, RW)
+    X0, X, T = _pose_problem(3, 5)
+    with pytest.raises(ValueError, match="PoseMPC.solve.*X \\(2,\\), X_ref \\(3,\\)"):
+        mpc.solve(X0[:2], X, T)
+    with pytest.raises(ValueError, match="PoseMPC.solve: argument 'T_ref'.*\\(\\*B, 8, 6\\)"):
+        mpc.solve(X0, X, T[..., :3])
+
+
+# ------------------------------------------------------------------------------------------------------
+# the iterated variant: a scale-invariant certificate, the same values with gradients, gradients in x0
+# ------------------------------------------------------------------------------------------------------
+
+X0_LONG = [1.97, 1.03]
+
+
+def _lsq_oracle(x0, N, lo, hi):
+    """The bounded least-squares plan: the better of scipy's trf (tight tolerances) and bvls (bvls alone is
+    wrong on the double integrator at N ≥ 40)."""
+    M, b = _dense(x0, N)
+    lo, hi = np.full(N, lo), np.full(N, hi)
+    plans = [lsq_linear(M, -b, bounds=(lo, hi), method="trf", lsq_solver="exact", tol=1e-15,
+                        max_iter=10000).x,
+             lsq_linear(M, -b, bounds=(lo, hi), method="bvls", tol=1e-15).x]
+    costs = [float(np.sum((M @ p + b) ** 2)) for p in plans]
+    return plans[int(np.argmin(costs))], min(costs)
+
+
+@pytest.mark.parametrize(("scale", "dtype"), [(1.0, D), (1e5, D), (1e-4, D), (1.0, torch.float32),
+                                              (1e5, torch.float32)])
+def test_iterate_certificate_is_scale_invariant(scale, dtype):
+    """Scaling Q and R together leaves the minimizer unchanged: iterate returns it, CONVERGED, at every
+    scale and in float32.  Before, the stopping test (projected gradient, bounded by the width of the box,
+    against the size of the gradient's terms, which grows with the weights) passed at the starting point:
+    U = u_ref, 0 iterations, a cost 31 times the optimum, at scale 1e5 (and at scale 1 in float32)."""
+    N = 30
+    ref, ref_cost = _lsq_oracle(X0_LONG, N, -0.4, 0.6)
+    mpc = ErrorStateMPC(DoubleIntegrator(), N, scale * torch.tensor([1.0, 0.1], dtype=dtype),
+                        scale * torch.tensor([RD], dtype=dtype), u_lower=-0.4, u_upper=0.6)
+    with torch.no_grad():
+        sol = mpc.iterate(torch.tensor(X0_LONG, dtype=dtype), torch.zeros(N + 1, 2, dtype=dtype),
+                          torch.zeros(N, 1, dtype=dtype))
+    assert sol.status.reason.item() == int(Reason.CONVERGED)
+    atol, rtol = (1e-6, 1e-10) if dtype == D else (2e-3, 1e-5)
+    np.testing.assert_allclose(sol.U[:, 0].double().numpy(), ref, rtol=0, atol=atol)
+    assert float(sol.cost) / scale <= ref_cost * (1 + rtol)
+    assert float(sol.kkt_residual) <= 1e3 * torch.finfo(dtype).eps
+
+
+@pytest.mark.parametrize("dtype", [D, torch.float32])
+def test_iterate_returns_the_same_values_with_and_without_gradients(dtype):
+    """The differentiable step at the certified point changes no value (before, with gradients enabled a
+    final uncertified Gauss-Newton step was added: another plan in float32)."""
+    N = 30
+    mpc = ErrorStateMPC(DoubleIntegrator(), N, torch.tensor([1.0, 0.1], dtype=dtype),
+                        torch.tensor([RD], dtype=dtype), u_lower=-0.4, u_upper=0.6)
+    x0 = torch.tensor([X0_LONG, [-0.5, 0.2]], dtype=dtype)
+    args = (torch.zeros(2, N + 1, 2, dtype=dtype), torch.zeros(2, N, 1, dtype=dtype))
+    with torch.no_grad():
+        plain = mpc.iterate(x0, *args)
+    graph = mpc.iterate(x0.clone().requires_grad_(True), *args)
+    assert graph.U.requires_grad
+    for name in ("U", "cost", "kkt_residual", "dx", "x", "clamped"):
+        assert torch.equal(getattr(plain, name), getattr(graph, name)), name
+    assert torch.equal(plain.status.reason, graph.status.reason)
+
+
+@pytest.mark.parametrize(("x0", "lo", "hi"), [([0.93, 0.47], -INF, 0.5), ([-1.0, 0.3], -0.6, 0.9)])
+def test_iterate_gradients_in_x0_match_central_differences(x0, lo, hi):
+    """dU/dx0 and dx/dx0 of iterate against central differences of the bounded least-squares plan (and its
+    rollout written out).  Before, U did not depend on x0 in the graph (requires_grad False) and x only
+    through the final rollout."""
+    N = 5
+    mpc = _di_mpc(u_lower=lo, u_upper=hi)
+    xr, ur = torch.zeros(N + 1, 2, dtype=D), torch.zeros(N, 1, dtype=D)
+    A = np.array([[1.0, DT], [0.0, 1.0]])
+    Bm = np.array([0.0, DT])
+
+    def oracle(z):
+        U = _bvls(z, N, lo, hi)
+        xs = [np.asarray(z, dtype=float)]
+        for u in U:
+            xs.append(A @ xs[-1] + Bm * u)
+        return np.concatenate([U, np.stack(xs).ravel()])
+
+    h = 1e-6
+    fd = np.stack([(oracle(np.add(x0, h * e)) - oracle(np.subtract(x0, h * e))) / (2 * h)
+                   for e in np.eye(2)], -1)
+    z = torch.tensor(x0, dtype=D, requires_grad=True)
+    sol = mpc.iterate(z, xr, ur)
+    assert sol.status.reason.item() == int(Reason.CONVERGED) and sol.U.requires_grad
+    out = torch.cat([sol.U.reshape(-1), sol.x.reshape(-1)])
+    jac = torch.stack([torch.autograd.grad(o, z, retain_graph=True)[0] for o in out]).numpy()
+    np.testing.assert_allclose(jac, fd, rtol=0, atol=1e-6)
