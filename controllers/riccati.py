@@ -162,16 +162,37 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
         cc, stage = prepared.canonical, (prepared.C, prepared.VT)
     else:
         cc = cost.canonical(T)
-    x, u, K, k, J, info = lqr(d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0, T, grad, fused,
-                              _stage=stage)
+    data = [d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0]
+    inp = None
+    if check:
+        inp = problem.input_status(None if prepared is None else prepared.status)
+        # an element whose inputs failed is solved on stand-in data (identity weights and dynamics, zero
+        # elsewhere): its NaN/inf would otherwise reach a shared parameter's gradient as 0·inf
+        data = [_stand_in(inp != 0, v, k, eye) for v, k, eye in zip(data, _EVENT_DIMS, _IDENTITY)]
+    x, u, K, k, J, info = lqr(*data, T, grad, fused, _stage=stage)
     J = J + cc.const
     reason = (~info.all(-1)).to(torch.int64) * int(Reason.SINGULAR_QUU)
-    if check:
-        inp = problem.input_status(None if prepared is None else prepared.status).expand(reason.shape)
+    if inp is not None:
+        inp = inp.expand(reason.shape)
         reason = torch.where(inp != 0, inp, reason)
     bad = reason != 0
     x, u, K, k, J = (_nan_where(bad, v) for v in (x, u, K, k, J))
     return LQSolution(x=x, u=u, K=K, k=k, cost=J, status=SolverStatus.from_reason(reason, 1))
+
+
+#: event dims (time included) of lqr's arguments A, B, c, Q, R, N, q, r, x0
+_EVENT_DIMS = (3, 3, 2, 3, 3, 3, 2, 2, 1)
+_IDENTITY = (True, False, False, True, True, False, False, False, False)  # stand-ins: I for A, Q, R
+
+
+def _stand_in(bad: torch.Tensor, v: torch.Tensor | None, k: int, eye: bool) -> torch.Tensor | None:
+    """``v`` (``k`` event dims) with the elements ``bad (*B,)`` replaced by harmless data: the identity
+    (``eye``: A, Q, R) or zero.  Tensors without batch dims are shared and kept."""
+    if v is None or v.dim() == k:
+        return v
+    good_val = torch.eye(v.shape[-1], dtype=v.dtype, device=v.device) if eye \
+        else torch.zeros((), dtype=v.dtype, device=v.device)
+    return torch.where(bad.reshape(tuple(bad.shape) + (1,) * k), good_val, v)
 
 
 def _nan_where(bad: torch.Tensor, v: torch.Tensor) -> torch.Tensor:

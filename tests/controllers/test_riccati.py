@@ -427,3 +427,40 @@ def test_scaling_the_cost_does_not_change_the_plan(grad):
         cost = QuadraticCost(Q=torch.eye(2, dtype=D) * 1e20, R=R * 1e20)
         fused = riccati.solve(LQProblem(LinearDynamics(A, B), cost, x0, 6), grad=grad, fused=True)
         torch.testing.assert_close(fused.u, sols[0].u, rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("grad", ["implicit", "unrolled"])
+@pytest.mark.parametrize("bad", ["x0 inf", "R nan at one step", "Q not PSD"])
+def test_an_input_failure_adds_nothing_to_a_shared_dynamics_gradient(grad, bad):
+    """An element whose inputs failed is solved on stand-in data: the gradient of a shared A from the
+    good element equals that of the good element alone (before: NaN, as 0·inf)."""
+    import math
+
+    from controllers.costs import QuadraticCost
+    from controllers.dynamics import LinearDynamics
+    from controllers.problem import LQProblem
+
+    D, T = torch.float64, 6
+    A0 = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=D)
+    B = torch.tensor([[0.005], [0.1]], dtype=D)
+    x0 = torch.tensor([[1.0, 0.0], [0.5, -0.2]], dtype=D)
+    R = torch.full((2, T, 1, 1), 0.1, dtype=D)
+    Q = torch.eye(2, dtype=D).repeat(2, 1, 1, 1)
+    if bad == "x0 inf":
+        x0[1, 0] = math.inf
+    elif bad == "R nan at one step":
+        R[1, 2] = math.nan
+    else:
+        Q[1, 0, 1, 1] = -1.0
+
+    def grad_of(idx):
+        A = A0.clone().requires_grad_(True)
+        cost = QuadraticCost(Q=Q[idx], R=R[idx])
+        sol = riccati.solve(LQProblem(LinearDynamics(A, B), cost, x0[idx], T), grad=grad)
+        (gA,) = torch.autograd.grad(sol.u[0].sum() + sol.cost[0], A)
+        return sol, gA
+
+    sol, gA = grad_of([0, 1])
+    assert sol.status.reason[0] == 0 and sol.status.reason[1] != 0
+    _, g_alone = grad_of([0])
+    torch.testing.assert_close(gA, g_alone, rtol=1e-12, atol=1e-14)
