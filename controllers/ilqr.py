@@ -666,8 +666,9 @@ def ilqr(
         ``INFEASIBLE_BOUNDS`` (``u_lower > u_upper``, ``u_lower = +inf`` or ``u_upper = -inf`` somewhere:
         NaN likewise), ``NOT_POSITIVE_DEFINITE`` (a batched ``Q``/``R`` of a ``QuadraticCost`` not
         symmetric PSD/PD for that element: NaN likewise) or ``DIVERGED`` (the initial rollout is not
-        finite).  An input failure is reported before anything the iteration finds (first failure wins).
-        Every other element is solved as if alone.
+        finite: NaN likewise).  An input failure is reported before anything the iteration finds (first
+        failure wins).  Every other element is solved as if alone, in values and in the gradients of shared
+        parameters.
 
         Gradients reach the limits too (when they are tensors with a graph): a clamped control is held on
         its limit in the implicit Newton step, so its derivative w.r.t. that limit is 1 and the free controls
@@ -714,11 +715,14 @@ def ilqr(
         if analytic:
             out = tuple(v.clone() for v in out)
     x, u, K, kff, free, reason, iters, hist, mu, kkt = out
+    diverged = reason == int(Reason.DIVERGED)
+    x0s = torch.where(diverged.unsqueeze(-1), zero, x0s)  # as _solve carried it on
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
         x, u = ilqr_implicit(problem, x0s, x, u, free, bs, lo, hi)
     with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
         cost = problem.cost.evaluate(x, u).expand(bs)
     nanv = torch.full((), math.nan, **kw)
+    bad = bad | diverged
     b1 = bad.unsqueeze(-1).unsqueeze(-1)
     x = torch.where(b1, nanv, x)
     u = torch.where(b1, nanv, u)
@@ -726,7 +730,7 @@ def ilqr(
     K = torch.where(b1.unsqueeze(-1), nanv, K)
     kff = torch.where(b1, nanv, kff)
     kkt = torch.where(bad, nanv, kkt)
-    reason = torch.where(bad, inp, reason)  # the first failure wins: the inputs' own
+    reason = torch.where(inp != int(Reason.CONVERGED), inp, reason)  # the first failure wins: the inputs'
     status = SolverStatus(converged=reason == int(Reason.CONVERGED), iterations=iters, reason=reason)
     return ILQRSolution(x=x, u=u, K=K, k=kff, cost=cost, status=status, clamped=~free, cost_history=hist,
                         mu=mu, kkt_residual=kkt)
@@ -751,6 +755,13 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     reason = torch.where(bad, int(Reason.NONFINITE_INPUT), reason)
     reason = torch.where(diverged, int(Reason.DIVERGED), reason)
     active = ~bad & ~diverged
+    if bool(diverged.any()):
+        # carried on from a zero start (its outputs are NaN-ed by the caller): an inf trajectory in the
+        # graph would reach a shared parameter's gradient as 0·inf
+        x0 = torch.where(diverged.unsqueeze(-1), 0.0, x0)
+        u = torch.where(diverged[..., None, None], 0.0, u)
+        x = rollout(dyn, x0, u)
+        J = torch.where(diverged, cost.evaluate(x, u).expand(bs), J)
     mu = torch.full(bs, float(opts.mu_init), **kw)
     dmu = torch.ones(bs, **kw)
     iters = torch.zeros(bs, dtype=torch.int64, device=device)

@@ -12,6 +12,7 @@ import torch
 
 from controllers.costs import QuadraticCost
 from controllers.ilqr import ILQROptions, ILQRProblem, ilqr
+from controllers.problem import Reason
 from controllers.systems import Pendulum
 
 D = torch.float64
@@ -136,3 +137,27 @@ def test_nan_limits_shared_raise_batched_are_per_element():
     assert bool(torch.isnan(sol.u[1:]).all()) and bool(torch.isnan(sol.cost[1:]).all())
     alone = ilqr(_problem(lo[0], hi[0], x0[0]), grad="none", options=OPTS)
     torch.testing.assert_close(sol.u[0], alone.u, atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("grad", ["implicit", "unrolled"])
+@pytest.mark.parametrize("method", ["recursive", "batch"])
+def test_a_diverged_element_adds_nothing_to_a_shared_parameter_gradient(grad, method):
+    """x0 = 1e200 makes one element DIVERGED (its first rollout costs inf): its outputs are NaN and the
+    gradient of a shared pendulum length equals that of the good element alone (unrolled: NaN before)."""
+    D = torch.float64
+    cost = QuadraticCost(Q=torch.diag(torch.tensor([1.0, 0.1], dtype=D)), R=torch.tensor([[0.05]], dtype=D),
+                         x_ref=torch.tensor([1.0, 0.0], dtype=D))
+
+    def solve(x0):
+        length = torch.tensor(1.2, dtype=D, requires_grad=True)
+        sol = ilqr(ILQRProblem(Pendulum(dt=0.1, damping=0.1, length=length), cost, x0, 8), grad=grad,
+                   method=method)
+        (g,) = torch.autograd.grad(torch.nan_to_num(sol.u).sum() + torch.nan_to_num(sol.cost).sum(), length)
+        return sol, g
+
+    sol, g = solve(torch.tensor([[0.3, 0.0], [1e200, 0.0]], dtype=D))
+    assert sol.status.reason.tolist() == [int(Reason.CONVERGED), int(Reason.DIVERGED)]
+    assert bool(torch.isnan(sol.u[1]).all()) and bool(torch.isnan(sol.cost[1]))
+    alone, g_alone = solve(torch.tensor([[0.3, 0.0]], dtype=D))
+    torch.testing.assert_close(sol.u[0], alone.u[0], rtol=0, atol=1e-12)
+    torch.testing.assert_close(g, g_alone, rtol=1e-10, atol=1e-12)
