@@ -33,7 +33,7 @@ from controllers.boxqp import masked_hessian
 from controllers.costs import cost_derivatives, hessian_rows, lq_coefficients
 from controllers.dynamics import step_all, trajectory_jacobians
 
-__all__ = ["LQRFunction", "lqr_implicit", "adjoint_solve", "ilqr_implicit"]
+__all__ = ["LQRFunction", "lqr_implicit", "adjoint_solve", "ilqr_implicit", "reduced_hessian_pd"]
 
 #: iterative-refinement steps of the primal and adjoint solutions in the backward pass (:func:`_refine`)
 _REFINE_STEPS = 3
@@ -272,12 +272,7 @@ def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
     x, u = x.detach(), u.detach()
     A, B = trajectory_jacobians(dyn, x, u)  # time-major
     A, B = A.detach(), B.detach()
-    with torch.no_grad():
-        gx, gu, *_ = cost_derivatives(cost, x, u)
-        lam = [gx[..., T, :]]
-        for t in range(T - 1, -1, -1):
-            lam.append(gx[..., t, :] + (A[t].mT @ lam[-1].unsqueeze(-1)).squeeze(-1))
-        lam = torch.stack(lam[::-1], -2).expand(*bs, T + 1, n)
+    lam = _costates(cost, x, u, A, bs)
     with torch.enable_grad():
         xs = x.clone().requires_grad_(True)
         us = u.clone().requires_grad_(True)
@@ -309,6 +304,46 @@ def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
         dx, du = dx.reshape(*bs, T + 1, n), du.reshape(*bs, T, m)
     u = u + (du - du.detach())
     return x + (dx - dx.detach()), u if db is None else u + db
+
+
+def _costates(cost, x: torch.Tensor, u: torch.Tensor, A: torch.Tensor, bs: torch.Size) -> torch.Tensor:
+    """``λ (*B, T+1, n)``: ``λ_T = ∂l/∂x_T``, ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}`` (``A`` time-major)."""
+    T, n = u.shape[-2], x.shape[-1]
+    with torch.no_grad():
+        gx, *_ = cost_derivatives(cost, x, u)
+        lam = [gx[..., T, :]]
+        for t in range(T - 1, -1, -1):
+            lam.append(gx[..., t, :] + (A[t].mT @ lam[-1].unsqueeze(-1)).squeeze(-1))
+        return torch.stack(lam[::-1], -2).expand(*bs, T + 1, n)
+
+
+def reduced_hessian_pd(problem, x: torch.Tensor, u: torch.Tensor, free: torch.Tensor,
+                       bs: torch.Size) -> torch.Tensor:
+    """``(*B,)`` bool: at the KKT point ``x, u`` of ``problem`` the exact Hessian of the cost in the free
+    controls, with the dynamics eliminated (the Lagrangian's Hessian, dynamics' second derivatives
+    included), is positive definite — the second-order sufficient condition of a strict local minimum
+    with the clamped controls held.  Decided by the pivots of one Riccati sweep on that Hessian (all
+    ``Q_uu,t`` positive definite iff the reduced Hessian is; a Gauss-Newton iLQR never sees negative
+    curvature, so it can certify a saddle)."""
+    dyn, cost = problem.dynamics, problem.cost
+    T, n, m = problem.T, problem.n, problem.m
+    x, u = x.detach(), u.detach()
+    A, B = (v.detach() for v in trajectory_jacobians(dyn, x, u))
+    lam = _costates(cost, x, u, A, bs)
+    with torch.enable_grad():
+        xs = x.clone().requires_grad_(True)
+        us = u.clone().requires_grad_(True)
+        L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * step_all(dyn, xs[..., :T, :], us)).sum()
+        rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
+        Hxx, Hxu, Huu = hessian_rows(rx, ru, xs, us, n, m)
+    fm = free.to(x.dtype)
+    Q, R, N, _, _ = lq_coefficients(rx.detach(), ru.detach(), Hxx,
+                                    (Hxu[..., :T, :, :] * fm.unsqueeze(-2)).mT, masked_hessian(Huu, free))
+    Bm = B.movedim(0, -3) * fm.unsqueeze(-2)
+    A = A.movedim(0, -3).expand(*bs, T, n, n)
+    with torch.no_grad():
+        fac = _k.solve_core(A, Bm, None, Q, R, N, None, None, x[..., 0, :], T, bs)[3]
+    return fac.ok.all(-1).reshape(bs)
 
 
 def _depends_on_params(rx: torch.Tensor, ru: torch.Tensor, xs: torch.Tensor, us: torch.Tensor) -> bool:

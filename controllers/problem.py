@@ -66,6 +66,9 @@ class Reason(enum.IntEnum):
     #: not a certified optimum (e.g. the inner QP could not find a descent direction)
     STALLED = 7
     INFEASIBLE_BOUNDS = 8  #: a control's lower limit is above its upper limit for this element
+    #: a certified KKT point where the exact reduced Hessian (free controls, dynamics eliminated) is not
+    #: positive definite: a saddle or a maximum, not a local minimum (iLQR with ``second_order=True``)
+    NOT_A_MINIMUM = 9
 
 
 @dataclass(frozen=True, eq=False)

@@ -197,3 +197,65 @@ def test_certificate_does_not_depend_on_how_small_R_is(R):
         assert bool((kkt <= 1e-6).all())
     torch.testing.assert_close(sols["recursive"].u, sols["batch"].u, atol=1e-5, rtol=0)
     torch.testing.assert_close(sols["recursive"].cost, sols["batch"].cost, atol=1e-14, rtol=1e-9)
+
+
+def _unicycle_problem(R: float, x0):
+    from controllers.dynamics import NonlinearDynamics
+
+    D, T, dt = torch.float64, 10, 0.1
+
+    def f(x, u, t):
+        px, py, th = x.unbind(-1)
+        v, w = u.unbind(-1)
+        return torch.stack([px + dt * v * torch.cos(th), py + dt * v * torch.sin(th), th + dt * w], -1)
+
+    cost = QuadraticCost(Q=torch.diag(torch.tensor([1.0, 1.0, 0.1], dtype=D)), R=torch.eye(2, dtype=D) * R,
+                         x_ref=torch.tensor([1.0, 0.5, 0.0], dtype=D))
+    return ILQRProblem(NonlinearDynamics(f, 3, 2, time_invariant=True), cost, x0, T), f, cost
+
+
+def _min_hessian_eigenvalue(f, cost, x0, u):
+    """The smallest eigenvalue of the exact Hessian of J(u) by autograd through a rollout (independent of
+    the solver's Riccati sweep)."""
+    T = u.shape[0]
+
+    def J(z):
+        us = z.view(T, 2)
+        xs = [x0]
+        for t in range(T):
+            xs.append(f(xs[-1], us[t], t))
+        return cost.evaluate(torch.stack(xs), us)
+
+    H = torch.autograd.functional.hessian(J, u.reshape(-1))
+    return float(torch.linalg.eigvalsh(H).min())
+
+
+def test_second_order_check_tells_a_saddle_from_a_minimum():
+    """A unicycle from rest with R = 1e-12: Gauss-Newton iLQR stops on a KKT point whose exact Hessian
+    has a negative eigenvalue (J = 3.75; the minimum is 1.65). With second_order=True that element is
+    NOT_A_MINIMUM; a true minimum (a start with a heading) stays CONVERGED, in the same batch."""
+    D = torch.float64
+    x0 = torch.tensor([[0.0, 0.0, 0.0], [0.0, 0.0, 0.4]], dtype=D)
+    prob, f, cost = _unicycle_problem(1e-12, x0)
+    plain = ilqr(prob, grad="none")
+    checked = ilqr(prob, grad="none", options=ILQROptions(second_order=True))
+    assert plain.status.reason.tolist() == [0, 0]
+    eig = [_min_hessian_eigenvalue(f, cost, x0[i], plain.u[i]) for i in range(2)]
+    assert eig[0] < -1e-3 and eig[1] > 0  # the reference: a saddle, then a minimum
+    assert checked.status.reason.tolist() == [int(Reason.NOT_A_MINIMUM), int(Reason.CONVERGED)]
+    torch.testing.assert_close(checked.u, plain.u, rtol=0, atol=0)  # the check changes no value
+
+
+def test_second_order_check_holds_at_a_constrained_minimum():
+    """Pendulum swing-ups with active limits: the reduced Hessian on the free controls is PD at the
+    certified points, so second_order=True changes no status."""
+    D = torch.float64
+    x0 = torch.tensor([[0.1, 0.0], [-0.2, 0.3], [0.0, 1.0]], dtype=D)
+    cost = QuadraticCost(Q=torch.diag(torch.tensor([1.0, 0.1], dtype=D)), R=torch.tensor([[0.01]], dtype=D),
+                         x_ref=torch.tensor([math.pi, 0.0], dtype=D))
+    prob = ILQRProblem(Pendulum(dt=0.05), cost, x0, 40, u_lower=-2.0, u_upper=2.0)
+    plain = ilqr(prob, grad="none")
+    checked = ilqr(prob, grad="none", options=ILQROptions(second_order=True))
+    assert bool(plain.clamped.any())  # the regime: some controls on their limits
+    assert checked.status.reason.tolist() == plain.status.reason.tolist()
+    assert bool(plain.status.converged.all())
