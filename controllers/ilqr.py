@@ -227,6 +227,9 @@ class ILQRProblem:
             if not isinstance(v, Tensor):
                 if math.isnan(v):
                     raise ValueError(f"{own}: field '{name}' is NaN (use ±inf for no limit)")
+                if v == (math.inf if name == "u_lower" else -math.inf):
+                    raise ValueError(f"{own}: field '{name}' is {v} (no control satisfies it; use "
+                                     f"{-v} or None for no limit)")
                 continue
             if v.dtype != self.x0.dtype:
                 raise TypeError(f"{own}: field '{name}' has dtype {v.dtype}, x0 has {self.x0.dtype}")

@@ -160,7 +160,8 @@ class MPCPolicy(nn.Module):
         horizon: planning horizon ``T``.
         cost: an ``nn.Module`` with ``forward(obs (*B, n)) -> Cost`` over ``T`` steps, e.g.
             :class:`~controllers.costs.DiagonalQuadraticCost`; its parameters are the policy's.
-        u_lower, u_upper: control limits (floats or ``(m,)`` tensors, buffers of the module).
+        u_lower, u_upper: control limits (floats, or tensors of shape ``()``, ``(m,)`` or ``(T, m)`` per step:
+            buffers of the module).
         grad: gradient mode of the solver (implicit by default).
         options: :class:`~controllers.ilqr.ILQROptions`.
     """
@@ -182,7 +183,12 @@ class MPCPolicy(nn.Module):
             if isinstance(v, Tensor):
                 if not v.dtype.is_floating_point:
                     raise TypeError(f"MPCPolicy: argument '{name}' must be a float or a floating tensor")
-                self.register_buffer(name, v.detach().clone().reshape(-1))  # moves with .to()
+                m = int(system.m)
+                if v.dim() > 2 or (v.dim() >= 1 and v.shape[-1] not in (1, m)) or (
+                        v.dim() == 2 and v.shape[0] not in (1, horizon)):
+                    raise ValueError(f"MPCPolicy: argument '{name}' must be a float or a tensor of shape (), "
+                                     f"({m},) or ({horizon}, {m}) (per step), got {tuple(v.shape)}")
+                self.register_buffer(name, v.detach().clone())  # moves with .to()
             elif v is None or isinstance(v, (int, float)):
                 setattr(self, name, None if v is None else float(v))  # a float takes the problem's dtype
             else:

@@ -161,3 +161,17 @@ def test_a_diverged_element_adds_nothing_to_a_shared_parameter_gradient(grad, me
     alone, g_alone = solve(torch.tensor([[0.3, 0.0]], dtype=D))
     torch.testing.assert_close(sol.u[0], alone.u[0], rtol=0, atol=1e-12)
     torch.testing.assert_close(g, g_alone, rtol=1e-10, atol=1e-12)
+
+
+def test_a_float_limit_no_control_satisfies_is_a_value_error():
+    """u_lower = +inf / u_upper = -inf as numbers are the caller's error (as a NaN or crossed float pair
+    is); in a tensor they are the element's INFEASIBLE_BOUNDS (checked without a host sync)."""
+    D = torch.float64
+    cost = QuadraticCost(Q=torch.eye(2, dtype=D), R=torch.eye(1, dtype=D))
+    x0 = torch.zeros(2, 2, dtype=D)
+    for kw, name in ((dict(u_lower=math.inf), "u_lower"), (dict(u_upper=-math.inf), "u_upper")):
+        with pytest.raises(ValueError, match=name):
+            ILQRProblem(Pendulum(), cost, x0, 5, **kw)
+    lo = torch.tensor([[[-1.0]], [[math.inf]]], dtype=D)
+    sol = ilqr(ILQRProblem(Pendulum(), cost, x0, 5, u_lower=lo, u_upper=2.0), grad="none")
+    assert sol.status.reason.tolist() == [int(Reason.CONVERGED), int(Reason.INFEASIBLE_BOUNDS)]

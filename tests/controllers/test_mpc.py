@@ -249,6 +249,23 @@ def test_float_limits_take_the_policy_dtype():
         MPCPolicy(Pendulum(), 5, _cost(5), u_lower="-2")
 
 
+def test_per_step_limits_are_kept_and_bad_shapes_are_named():
+    """A (T, m) limit applies per step (the plan equals one with that limit as an ILQRProblem field); a
+    shape that does not broadcast is a ValueError with the shape the user passed (it was flattened)."""
+    T = 5
+    step_hi = torch.tensor([[0.5], [1.0], [1.5], [2.0], [2.5]], dtype=D64)
+    pol = MPCPolicy(Pendulum(), T, _cost(T), u_lower=-3.0, u_upper=step_hi)
+    obs = torch.tensor([[0.2, 0.0], [-0.3, 0.5]], dtype=D64)
+    state = pol.initial_state(2)
+    a, new = pol(obs, state)
+    from controllers.ilqr import ILQRProblem, ilqr
+
+    ref = ilqr(ILQRProblem(Pendulum(), _cost(T)(obs), obs, T, u_lower=-3.0, u_upper=step_hi), grad="none")
+    torch.testing.assert_close(a, ref.u[..., 0, :], rtol=0, atol=1e-9)
+    with pytest.raises(ValueError, match=r"argument 'u_upper'.*\(5, 3\)"):
+        MPCPolicy(Pendulum(), T, _cost(T), u_upper=torch.ones(5, 3, dtype=D64))
+
+
 class _FixedCost(nn.Module):
     """A cost module without parameters or buffers: the cost follows the observation's dtype."""
 
