@@ -123,6 +123,37 @@ def check_weight(M: torch.Tensor, name: str, owner: str, *, strict: bool, shared
     return finite, sound
 
 
+def check_limit(v, name: str, owner: str, T: int, m: int, what: str = "argument", batch: tuple = ()):
+    """The one rule for a control limit ``u_lower``/``u_upper`` (``name``) of a problem with horizon ``T``
+    and ``m`` controls: ``None``, a real number, or a floating tensor broadcastable to ``(*B, T, m)`` (time
+    dim 1 or ``T``, control dim 1 or ``m``).  A number that is NaN, or that no control satisfies
+    (``u_lower = +inf``, ``u_upper = -inf``), is a ``ValueError``; tensors are checked per element by the
+    solver (a NaN entry: ``NONFINITE_INPUT``; crossed or unsatisfiable: ``INFEASIBLE_BOUNDS``).  Returns a
+    number as a float, anything else unchanged; ``what`` names the kind of input and ``batch`` the batch
+    shape ``B`` (when known) in messages."""
+    import math  # noqa: PLC0415
+
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float, torch.Tensor)):
+        raise TypeError(f"{owner}: {what} '{name}' must be None, a real number or a tensor broadcastable to "
+                        f"(*B, {T}, {m}), got {type(v).__name__}")
+    if not isinstance(v, torch.Tensor):
+        if math.isnan(v):
+            raise ValueError(f"{owner}: {what} '{name}' is NaN (use ±inf or None for no limit)")
+        if v == (math.inf if name == "u_lower" else -math.inf):
+            raise ValueError(f"{owner}: {what} '{name}' is {v} (no control satisfies it; use {-v} or None "
+                             "for no limit)")
+        return float(v)
+    if not v.dtype.is_floating_point:
+        raise TypeError(f"{owner}: {what} '{name}' must have a floating dtype, got {v.dtype}")
+    if v.dim() > 0 and (v.shape[-1] not in (1, m) or (v.dim() > 1 and v.shape[-2] not in (1, T))):
+        want = (*batch, T, m) if batch else f"(*B, {T}, {m})"
+        raise ValueError(f"{owner}: {what} '{name}' must broadcast to (*B, T, m) = {want} (time and control "
+                         f"dims 1 or {T} and 1 or {m}), got {tuple(v.shape)}")
+    return v
+
+
 def all_finite(v: torch.Tensor, k: int) -> torch.Tensor:
     """``(...)`` bool over the leading dims: all of the last ``k`` dims finite.  ``max |v|`` is NaN or inf
     exactly when an entry is (amax propagates NaN), and is several times cheaper than ``isfinite().all()``."""

@@ -58,7 +58,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from controllers._validate import broadcast_batch, enum_arg, time_major
+from controllers._validate import broadcast_batch, check_limit, enum_arg, time_major
 from controllers.boxqp import box_qp, masked_hessian
 from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, cost_derivatives
 from controllers.dynamics import (
@@ -219,24 +219,11 @@ class ILQRProblem:
         T, m = self.horizon, self.m
         for name in ("u_lower", "u_upper"):
             v = getattr(self, name)
-            if v is None:
-                continue
-            if isinstance(v, bool) or not isinstance(v, (int, float, Tensor)):
-                raise TypeError(f"{own}: field '{name}' must be None, a real number or a tensor, "
-                                f"got {type(v).__name__}")
+            check_limit(v, name, own, T, m, what="field", batch=tuple(self._batch_shape(limits=False)))
             if not isinstance(v, Tensor):
-                if math.isnan(v):
-                    raise ValueError(f"{own}: field '{name}' is NaN (use ±inf for no limit)")
-                if v == (math.inf if name == "u_lower" else -math.inf):
-                    raise ValueError(f"{own}: field '{name}' is {v} (no control satisfies it; use "
-                                     f"{-v} or None for no limit)")
                 continue
             if v.dtype != self.x0.dtype:
                 raise TypeError(f"{own}: field '{name}' has dtype {v.dtype}, x0 has {self.x0.dtype}")
-            if v.dim() > 0 and (v.shape[-1] not in (1, m) or (v.dim() > 1 and v.shape[-2] not in (1, T))):
-                want = (*self._batch_shape(limits=False), T, m)
-                raise ValueError(f"{own}: field '{name}' must broadcast to (*B, T, m) = {want} (time and "
-                                 f"control dims 1 or {T} and 1 or {m}), got {tuple(v.shape)}")
             if v.dim() <= 2 and bool(torch.isnan(v).any()):
                 raise ValueError(f"{own}: field '{name}' (shared by the batch) has NaN entries "
                                  "(use ±inf for no limit)")

@@ -77,7 +77,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
-from controllers._validate import all_finite, broadcast_batch, check_weight, enum_arg
+from controllers._validate import all_finite, broadcast_batch, check_limit, check_weight, enum_arg
 from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
@@ -419,29 +419,12 @@ _REFINE_DTYPES = (torch.float16, torch.bfloat16, torch.float32)
 
 
 def _limit(b, name: str, fn: str, N: int, m: int, own: bool):
-    """A limit argument as ``None``, a float or a tensor broadcastable to ``(*B, N, m)`` (``own``: a limit of
-    the system, a sequence or tensor cast to the data's dtype at solve time)."""
-    if b is None:
-        return None
-    if own and not isinstance(b, Tensor) and not isinstance(b, (int, float)):
+    """A limit argument checked by the one rule (:func:`controllers._validate.check_limit`): ``None``, a float
+    or a tensor broadcastable to ``(*B, N, m)`` (``own``: a limit of the system, a sequence or tensor cast to
+    the data's dtype at solve time)."""
+    if own and b is not None and not isinstance(b, (int, float, Tensor)):
         b = torch.as_tensor(b, dtype=torch.float64)
-    if isinstance(b, bool) or not isinstance(b, (int, float, Tensor)):
-        raise TypeError(f"{fn}: argument '{name}' must be None, a float or a tensor broadcastable to "
-                        f"(*B, {N}, {m}), got {type(b).__name__}")
-    if not isinstance(b, Tensor):
-        if math.isnan(b):
-            raise ValueError(f"{fn}: argument '{name}' is NaN (use ±inf or None for no limit)")
-        if b == (math.inf if name == "u_lower" else -math.inf):
-            raise ValueError(f"{fn}: argument '{name}' is {b} (no control satisfies it; use "
-                             f"{'-inf' if name == 'u_lower' else 'inf'} or None for no limit)")
-        return float(b)
-    if not b.dtype.is_floating_point:
-        raise TypeError(f"{fn}: argument '{name}' must have a floating dtype, got {b.dtype}")
-    sh = tuple(b.shape)
-    if (len(sh) >= 1 and sh[-1] not in (1, m)) or (len(sh) >= 2 and sh[-2] not in (1, N)):
-        raise ValueError(f"{fn}: argument '{name}' must broadcast to (*B, N, m) = (*B, {N}, {m}) "
-                         f"(e.g. ({m},), ({N}, {m}) or (B, 1, {m})), got {sh}")
-    return b
+    return check_limit(b, name, fn, N, m)
 
 
 def _check_options(fn: str, *, tol, **counts) -> None:
