@@ -25,11 +25,14 @@ rotation between the poses) is a test on the very residual it minimizes.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
+from controllers._validate import all_finite
 from controllers.problem import Reason, SolverStatus
 from torchlie import so3
 from torchlie.manifolds import SE3
@@ -46,10 +49,152 @@ def joint_limit_gradient(q: Tensor, q_min: Tensor, q_max: Tensor) -> Tensor:
     """``−∇h(q)`` for ``h(q) = (1/2n) Σ ((q_i − q̄_i)/(q_max,i − q_min,i))²`` (Liégeois), ``q̄`` the mid-range.
 
     A joint velocity along this vector moves every joint towards the middle of its range, faster the nearer it
-    is to a limit (relative to the range).  ``(*B, n)``.
+    is to a limit (relative to the range).  A joint with an infinite limit (a continuous joint) gets 0, the
+    limit of the term as the range grows.  ``(*B, n)``.
     """
-    rng = q_max - q_min
-    return -(q - 0.5 * (q_min + q_max)) / (rng * rng * q.shape[-1])
+    bounded = torch.isfinite(q_min) & torch.isfinite(q_max)
+    lo, hi = torch.where(bounded, q_min, 0.0), torch.where(bounded, q_max, 1.0)
+    rng = hi - lo
+    return torch.where(bounded, -(q - 0.5 * (lo + hi)) / (rng * rng * q.shape[-1]), 0.0)
+
+
+def _broadcasts(a, b) -> bool:
+    try:
+        torch.broadcast_shapes(a, b)
+    except RuntimeError:
+        return False
+    return True
+
+
+def _as_batch_arg(v, name: str, J: Tensor, batch: tuple[int, ...]) -> Tensor:
+    """``damping``/``nullspace_gain``: a real number or a tensor ``(*B,)`` broadcasting with the batch."""
+    if isinstance(v, Tensor):
+        if not v.is_floating_point() or v.dtype != J.dtype or v.device != J.device:
+            raise TypeError(f"dls_joint_velocity: argument '{name}' must be a float or a {J.dtype} tensor on "
+                            f"{J.device} (as J), got a {v.dtype} tensor on {v.device}")
+    elif isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TypeError(f"dls_joint_velocity: argument '{name}' must be a float or a tensor (*B,), "
+                        f"got {type(v).__name__}")
+    t = torch.as_tensor(v, dtype=J.dtype, device=J.device)
+    if not _broadcasts(t.shape, batch):
+        raise ValueError(f"dls_joint_velocity: argument '{name}' must be a float or a tensor (*B,) "
+                         f"broadcasting with the batch {batch} of J and twist, got shape {tuple(t.shape)}")
+    return t
+
+
+def _check_dls_args(J, twist, damping, q, q_limits, nullspace_gain, check_limits: bool = True):
+    """The argument checks of :func:`dls_joint_velocity`; returns ``(λ, k)`` as tensors."""
+    for name, t in (("J", J), ("twist", twist)):
+        if not isinstance(t, Tensor) or not t.is_floating_point():
+            what = f"a {t.dtype} tensor" if isinstance(t, Tensor) else type(t).__name__
+            raise TypeError(f"dls_joint_velocity: argument '{name}' must be a floating-point torch.Tensor, "
+                            f"got {what}")
+    if twist.dtype != J.dtype or twist.device != J.device:
+        raise TypeError(f"dls_joint_velocity: argument 'twist' ({twist.dtype}, {twist.device}) must have J's "
+                        f"dtype and device ({J.dtype}, {J.device}); cast it explicitly")
+    if J.ndim < 2 or twist.ndim < 1 or twist.shape[-1] != J.shape[-2]:
+        raise ValueError(f"dls_joint_velocity: J (*B, m, n) and twist (*B, m) do not match: "
+                         f"{tuple(J.shape)} and {tuple(twist.shape)}")
+    if not _broadcasts(J.shape[:-2], twist.shape[:-1]):
+        raise ValueError(f"dls_joint_velocity: the batch dims of J {tuple(J.shape)} and twist "
+                         f"{tuple(twist.shape)} do not broadcast")
+    batch = tuple(torch.broadcast_shapes(J.shape[:-2], twist.shape[:-1]))
+    lam = _as_batch_arg(damping, "damping", J, batch)
+    gain = _as_batch_arg(nullspace_gain, "nullspace_gain", J, batch)
+    if q is None or q_limits is None:
+        return lam, gain
+    n = J.shape[-1]
+    if not (isinstance(q_limits, (tuple, list)) and len(q_limits) == 2):
+        raise TypeError("dls_joint_velocity: argument 'q_limits' must be a pair (q_min, q_max) of tensors")
+    for name, t in (("q", q), ("q_limits[0]", q_limits[0]), ("q_limits[1]", q_limits[1])):
+        if not isinstance(t, Tensor) or t.dtype != J.dtype or t.device != J.device:
+            what = f"{t.dtype} on {t.device}" if isinstance(t, Tensor) else type(t).__name__
+            raise TypeError(f"dls_joint_velocity: argument '{name}' must be a {J.dtype} tensor on {J.device} "
+                            f"(as J), got {what}")
+        if t.ndim < 1 or t.shape[-1] != n or not _broadcasts(t.shape[:-1], batch):
+            raise ValueError(f"dls_joint_velocity: argument '{name}' must be (*B, {n}) (J has {n} columns, "
+                             f"*B broadcasting with the batch {batch} of J and twist), got {tuple(t.shape)}")
+    if check_limits:  # one host synchronization
+        lo, hi = q_limits
+        if not bool((lo < hi).all()):
+            raise ValueError("dls_joint_velocity: argument 'q_limits' must have q_min < q_max for every "
+                             "joint (±inf allowed, no NaN); got crossed, equal or NaN limits at joints "
+                             f"{torch.nonzero(~(lo < hi).reshape(-1, n).all(0)).flatten().tolist()}")
+    return lam, gain
+
+
+class _DampedPinv(torch.autograd.Function):
+    """``(J⁺_λ ξ, (I − J⁺ J) z)`` from one SVD of ``J``, with the derivatives in closed form.
+
+    ``J⁺_λ = Jᵀ (J Jᵀ + λ² I)⁻¹ = V Σ (Σ² + λ²)⁻¹ Uᵀ`` where ``λ² > 0`` and the (rank-truncated)
+    pseudo-inverse ``J⁺`` where ``λ = 0``.  Autograd through the SVD divides by differences of singular values
+    and is NaN for a rank-deficient ``J`` (or repeated singular values) although ``J⁺_λ`` is smooth for
+    ``λ > 0``.  The backward uses instead, with ``g`` the output gradient, ``w = (J Jᵀ + λ² I)⁻¹ ξ``,
+    ``h = (J Jᵀ + λ² I)⁻¹ J g`` and ``y = J⁺_λ ξ``:
+
+    * ``λ > 0``: ``∂J = w (g − Jᵀ h)ᵀ − h yᵀ``, ``∂ξ = h``, ``∂λ = −2λ hᵀ w``;
+    * ``λ = 0``: the derivative of ``J⁺`` at constant rank (Golub & Pereyra 1973),
+      ``dJ⁺ = −J⁺ dJ J⁺ + J⁺ J⁺ᵀ dJᵀ (I − J J⁺) + (I − J⁺ J) dJᵀ J⁺ᵀ J⁺`` — the derivative for a full-rank
+      ``J`` (and along rank-preserving changes of a rank-deficient one, where ``J⁺`` jumps otherwise);
+    * the projector ``N = I − J⁺ J`` at constant rank: ``dN = −N dJᵀ J⁺ᵀ − J⁺ dJ N``.
+
+    First derivatives only (a second backward raises).  Inputs broadcast; the SVD is taken on ``J``'s own
+    batch.
+    """
+
+    @staticmethod
+    def forward(ctx, J, xi, lam, z):
+        m, n = J.shape[-2:]
+        U, S, Vh = torch.linalg.svd(J, full_matrices=False)
+        rank = S > max(m, n) * torch.finfo(J.dtype).eps * S.amax(-1, keepdim=True)  # what J⁺ keeps
+        lam2 = (lam * lam)[..., None]
+        d = 1.0 / (S * S + lam2).clamp_min(torch.finfo(J.dtype).tiny)
+        gain = torch.where(rank | (lam2 > 0), S * d, 0.0)
+        c = _mv(U.mT, xi)
+        y = _mv(Vh.mT, gain * c)
+        zn = z - _mv(Vh.mT, rank * _mv(Vh, z))
+        ctx.save_for_backward(J, xi, lam, z, U, S, Vh, rank, y, zn)
+        return y, zn
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, gy, gz):
+        J, xi, lam, z, U, S, Vh, rank, y, zn = ctx.saved_tensors
+        m, k = U.shape[-2:]
+        V = Vh.mT
+        lam2 = (lam * lam)[..., None]
+        damped = lam2 > 0
+        d = 1.0 / (S * S + lam2).clamp_min(torch.finfo(J.dtype).tiny)
+        sinv = torch.where(rank, 1.0 / torch.where(rank, S, 1.0), 0.0)
+        c, Vg, Vz, Vgz = _mv(U.mT, xi), _mv(Vh, gy), _mv(Vh, z), _mv(Vh, gz)
+        # λ > 0
+        w = _mv(U, d * c)
+        if m > k:  # the part of ξ outside the range of U, where J Jᵀ + λ² I is λ² I
+            w = w + torch.where(damped, (xi - _mv(U, c)) / lam2.clamp_min(torch.finfo(J.dtype).tiny), 0.0)
+        h = _mv(U, S * d * Vg)
+        gJ_d = _outer(w, gy - _mv(V, S * S * d * Vg)) - _outer(h, y)
+        # λ = 0 (J⁺ at constant rank)
+        a = _mv(U, sinv * Vg)  # J⁺ᵀ g
+        r = xi - _mv(U, rank * c)  # (I − J J⁺) ξ
+        gJ_p = (-_outer(a, y) + _outer(r, _mv(V, sinv * sinv * Vg))
+                + _outer(_mv(U, sinv * sinv * c), gy - _mv(V, rank * Vg)))
+        dmp = damped[..., None]
+        gJ = torch.where(dmp, gJ_d, gJ_p)
+        gxi = torch.where(damped, h, a)
+        glam = torch.where(damped[..., 0], -2.0 * lam * (h * w).sum(-1), 0.0)
+        # the null-space projector
+        Ngz = gz - _mv(V, rank * Vgz)
+        gJ = gJ - _outer(_mv(U, sinv * Vz), Ngz) - _outer(_mv(U, sinv * Vgz), zn)
+        return (gJ.sum_to_size(J.shape), gxi.sum_to_size(xi.shape), glam.sum_to_size(lam.shape),
+                Ngz.sum_to_size(z.shape))
+
+
+def _mv(A: Tensor, v: Tensor) -> Tensor:
+    return (A @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def _outer(a: Tensor, b: Tensor) -> Tensor:
+    return a.unsqueeze(-1) * b.unsqueeze(-2)
 
 
 def dls_joint_velocity(J: Tensor, twist: Tensor, damping: Tensor | float = 1e-2, q: Tensor | None = None,
@@ -67,30 +212,38 @@ def dls_joint_velocity(J: Tensor, twist: Tensor, damping: Tensor | float = 1e-2,
     to rounding: the joint-limit motion never changes the end-effector twist.  ``J (*B, 6, n)`` and
     ``twist`` must be in the same frame (both "world" or both "body" for a
     :class:`~controllers.systems.panda.Panda`).  Batch dims broadcast; dtype and device follow ``J``.  An
-    element with a non-finite ``J``, twist or ``q`` gets NaN joint velocities; the others are computed as if
-    it were absent (no element's linear algebra can fail the batch).  No host synchronization.
+    element with a non-finite ``J``, twist, ``λ``, ``k`` or ``q`` gets NaN joint velocities; the others are
+    computed as if it were absent (no element's linear algebra can fail the batch, and its gradient is zero).
+
+    Gradients (with respect to ``J``, the twist, ``λ``, ``q``, ``k``) are finite: the closed forms of
+    :class:`_DampedPinv` replace autograd through the SVD (NaN for a rank-deficient ``J``).  For ``λ > 0``
+    they are the derivatives of the DLS term, also at a singular ``J``; at ``λ = 0`` and for the null-space
+    projector they are the derivatives at constant rank (both jump where the rank changes).
+
+    Raises, at entry: ``TypeError`` for a ``J``/``twist`` that is not a floating tensor, a twist, ``q`` or
+    limit of another dtype or device than ``J``, or a ``damping``/``nullspace_gain`` that is neither a float
+    nor such a tensor; ``ValueError`` for shapes that do not match or broadcast, and for ``q_limits`` with
+    ``q_min < q_max`` false at some joint (crossed, equal or NaN; ``±inf`` is allowed: no avoidance on that
+    joint).  Checking the limits is the only host synchronization.
     """
-    if J.ndim < 2 or twist.shape[-1] != J.shape[-2]:
-        raise ValueError(f"dls_joint_velocity: J (*B, m, n) and twist (*B, m) do not match: "
-                         f"{tuple(J.shape)} and {tuple(twist.shape)}")
-    m, n = J.shape[-2:]
-    lam = torch.as_tensor(damping, dtype=J.dtype, device=J.device)
-    ok = torch.isfinite(J).all(-1).all(-1)
-    U, S, Vh = torch.linalg.svd(torch.where(ok[..., None, None], J, 0.0), full_matrices=False)
-    rank = S > max(m, n) * torch.finfo(J.dtype).eps * S.amax(-1, keepdim=True)  # the singular values J⁺ keeps
-    lam2 = (lam * lam)[..., None]
-    gain = torch.where(rank | (lam2 > 0), S / (S * S + lam2).clamp_min(torch.finfo(J.dtype).tiny), 0.0)
-    c = gain * (U.transpose(-1, -2) @ twist.unsqueeze(-1)).squeeze(-1)
-    qd = (Vh.transpose(-1, -2) @ c.unsqueeze(-1)).squeeze(-1)
-    qd = torch.where(ok[..., None], qd, torch.nan)
+    lam, gain = _check_dls_args(J, twist, damping, q, q_limits, nullspace_gain)
+    return _dls(J, twist, lam, q, q_limits, gain)
+
+
+def _dls(J: Tensor, twist: Tensor, lam: Tensor, q: Tensor | None, q_limits, gain: Tensor) -> Tensor:
+    """:func:`dls_joint_velocity` on checked arguments."""
+    ok = all_finite(J, 2) & all_finite(twist, 1) & torch.isfinite(lam.detach())
+    J = torch.where(all_finite(J, 2)[..., None, None], J, 0.0)  # harmless stand-ins, masked below
+    twist = torch.where(all_finite(twist, 1)[..., None], twist, 0.0)
+    lam = torch.where(torch.isfinite(lam.detach()), lam, 0.0)
     if q is None or q_limits is None:
-        return qd
-    q_min, q_max = q_limits
-    z = torch.as_tensor(nullspace_gain, dtype=J.dtype, device=J.device)[..., None] * joint_limit_gradient(
-        q, q_min, q_max)
-    Vr = Vh * rank[..., None].to(J.dtype)  # the rows of Vᵀ that J⁺ J projects onto
-    z_null = z - (Vr.transpose(-1, -2) @ (Vr @ z.unsqueeze(-1))).squeeze(-1)
-    return qd + z_null
+        z = torch.zeros((), dtype=J.dtype, device=J.device).expand(J.shape[-1])
+    else:
+        z = gain[..., None] * joint_limit_gradient(q, *q_limits)
+        ok = ok & all_finite(z, 1)
+        z = torch.where(all_finite(z, 1)[..., None], z, 0.0)
+    qd, z_null = _DampedPinv.apply(J, twist, lam, z)
+    return torch.where(ok[..., None], qd + z_null, torch.nan)
 
 
 def resolved_rate_step(robot, q: Tensor, twist: Tensor, dt: float, *, frame: str = "body",
@@ -107,7 +260,8 @@ def resolved_rate_step(robot, q: Tensor, twist: Tensor, dt: float, *, frame: str
     """
     q_min, q_max = robot.joint_limits(q.dtype, q.device)
     J = robot.jacobian(q, frame)
-    qd = dls_joint_velocity(J, twist, damping, q, (q_min, q_max), nullspace_gain)
+    lam, gain = _check_dls_args(J, twist, damping, q, (q_min, q_max), nullspace_gain, check_limits=False)
+    qd = _dls(J, twist, lam, q, (q_min, q_max), gain)  # the robot's limits: no host synchronization
     if dq_max is None and hasattr(robot, "velocity_limits"):
         dq_max = robot.velocity_limits(q.dtype, q.device)
     if dq_max is not None:
@@ -144,7 +298,8 @@ class IKResult:
         pos_err: ``(*B,)`` position error ``|p* − p(q)|`` (m).
         rot_err: ``(*B,)`` rotation error, the angle of ``R* R(q)ᵀ`` (rad).
         reason: ``(*B,)`` int64 codes of :class:`controllers.problem.Reason`: ``CONVERGED``,
-            ``NONFINITE_INPUT`` (NaN/inf in the target or a start of this element), ``MAX_ITERATIONS``.
+            ``NONFINITE_INPUT`` (NaN/inf in the target or a per-goal start of this element),
+            ``MAX_ITERATIONS``.
         lane: ``(*B,)`` int64 — which start the result comes from (0: ``q0``, ``k``: ``seeds[k − 1]``).
     """
 
@@ -199,9 +354,14 @@ def _check_start(t, name: str, k: int, robot, target: Tensor) -> None:
     if t.ndim < k or t.shape[-1] != n or not fits:
         raise ValueError(f"solve_ik: argument '{name}' must have shape {want} (robot.dof = {n} joints, *B "
                          f"broadcasting to the target's batch {batch}), got {tuple(t.shape)}")
+    # a start shared by every goal is the caller's input, not one element's: NaN/inf there is an error (a
+    # per-goal start keeps the per-element status NONFINITE_INPUT, as the target)
+    if t.ndim == k and not bool(torch.isfinite(t).all()):
+        raise ValueError(f"solve_ik: argument '{name}' {tuple(t.shape)} (shared by every goal) has NaN or "
+                         "inf entries; pass finite starts (a non-finite per-goal start fails its goal only)")
 
 
-def _check_ik_args(robot, target, q0, seeds, max_iter, rot_scale, damping) -> None:
+def _check_ik_args(robot, target, q0, seeds, max_iter, rot_scale, damping, pos_tol, rot_tol) -> None:
     """The argument checks of :func:`solve_ik` (a ValueError/TypeError naming the argument)."""
     if not isinstance(target, Tensor):
         raise TypeError(f"solve_ik: argument 'target' must be a torch.Tensor (*B, 4, 4), "
@@ -219,6 +379,10 @@ def _check_ik_args(robot, target, q0, seeds, max_iter, rot_scale, damping) -> No
         raise ValueError(f"solve_ik: argument 'rot_scale' must be a finite float > 0, got {rot_scale!r}")
     if not (math.isfinite(damping) and damping >= 0):
         raise ValueError(f"solve_ik: argument 'damping' must be a finite float >= 0, got {damping!r}")
+    for name, tol in (("pos_tol", pos_tol), ("rot_tol", rot_tol)):
+        if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not tol > 0:
+            raise ValueError(f"solve_ik: argument '{name}' must be a float > 0 (inf: not tested), got "
+                             f"{tol!r} (an error must be < it to succeed)")
     # rigid motions only: the pose error (log of R* Rᵀ) and the success test assume R* is a rotation.  The
     # tolerance is torchlie's manifold_tolerance; non-finite elements get their per-element status instead.
     finite = torch.isfinite(target).flatten(-2).all(-1)
@@ -261,8 +425,8 @@ def solve_ik(robot, target: Tensor, q0: Tensor | None = None, *, max_iter: int =
             evaluation per active lane, accepted or rejected).
 
     Returns:
-        :class:`IKResult`.  Non-finite values in an element's target or ``q0`` make that element fail with
-        ``NONFINITE_INPUT`` and leave the others untouched.
+        :class:`IKResult`.  Non-finite values in an element's target or in its own (per-goal) ``q0`` or
+        ``seeds`` make that element fail with ``NONFINITE_INPUT`` and leave the others untouched.
 
     Raises:
         ValueError / TypeError naming the argument, at entry: a ``target`` that is not a floating
@@ -270,9 +434,12 @@ def solve_ik(robot, target: Tensor, q0: Tensor | None = None, *, max_iter: int =
         :func:`torchlie.manifolds.manifold_tolerance`: a scaled or sheared rotation block, a wrong last
         row — a caller's error like a wrong shape, as in every manifold check of the project, not a
         per-element status); a ``q0``/``seeds`` of the wrong dtype, device, joint count or batch;
-        ``max_iter`` not an int ``>= 0``; ``rot_scale <= 0`` or ``damping < 0``.
+        ``max_iter`` not an int ``>= 0``; ``rot_scale <= 0``, ``damping < 0``, ``pos_tol``/``rot_tol``
+        not ``> 0`` (or NaN: never met); NaN/inf in a ``q0 (n,)`` or ``seeds (K, n)`` shared by every goal
+        (a shared input's defect is the caller's, as for the weights of the solvers; an ignored lane would
+        hide it).
     """
-    _check_ik_args(robot, target, q0, seeds, max_iter, rot_scale, damping)
+    _check_ik_args(robot, target, q0, seeds, max_iter, rot_scale, damping, pos_tol, rot_tol)
     dtype, device = target.dtype, target.device
     n = robot.dof
     batch = target.shape[:-2]

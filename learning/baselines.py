@@ -345,6 +345,54 @@ def read_agent_meta(path: str | Path) -> dict[str, Any]:
     return json.loads(meta.read_text())
 
 
+#: the JSON types of the ``agent.json`` entries :func:`load_agent` reads, and of the hyperparameters and
+#: policy keyword arguments the project records (others are passed on unchecked); ``None``: null allowed
+_META_TYPES: dict[str, tuple] = {"algo": (str,), "task": (str,), "params": (dict,), "policy": (str,),
+                                 "policy_kwargs": (dict, None), "seed": (int,), "num_timesteps": (int,)}
+_NUM = (int, float)
+_PARAM_TYPES: dict[str, tuple] = {
+    **dict.fromkeys(("n_envs", "n_steps", "batch_size", "n_epochs", "sde_sample_freq", "buffer_size",
+                     "learning_starts", "gradient_steps", "target_update_interval"), (int,)),
+    **dict.fromkeys(("gamma", "gae_lambda", "learning_rate", "clip_range", "tau", "max_grad_norm", "vf_coef"),
+                    _NUM),
+    **dict.fromkeys(("use_sde", "normalize_advantage"), (bool,))}
+_POLICY_KWARG_TYPES: dict[str, tuple] = {
+    "net_arch": (list, dict), "cost_net_arch": (list, None), "activation_fn": (type,),
+    "optimizer_class": (type,), "optimizer_kwargs": (dict, None), "ortho_init": (bool,), "use_sde": (bool,),
+    "wrap_angles": (bool,),
+    "share_features_extractor": (bool,), "log_std_init": _NUM, "log_scale_range": _NUM, "horizon": (int,),
+    "max_iter": (int,), "task": (str,), "grad": (str,), "terminal_factor": (*_NUM, None)}
+
+
+def _check_types(d: dict, types: dict[str, tuple], where: str) -> None:
+    """Each entry of ``d`` named in ``types`` has one of its types (a bool is not a number; ``None`` allows
+    null) — else a ``ValueError`` naming ``where`` and the key."""
+    for key, allowed in types.items():
+        if key not in d:
+            continue
+        v = d[key]
+        ok = (v is None and None in allowed) or any(
+            t is not None and isinstance(v, t) and (t is bool or not isinstance(v, bool)) for t in allowed)
+        if not ok:
+            names = " or ".join("null" if t is None else t.__name__ for t in allowed)
+            raise ValueError(f"load_agent: {where}: key {key!r} must be {names}, got {type(v).__name__} "
+                             f"{v!r} (the file was edited, or not written by learning.baselines)")
+
+
+def _checked_meta(meta: Any, path: Path) -> dict[str, Any]:
+    """``agent.json``'s content with its entries' types checked, ``params``/``policy_kwargs`` decoded."""
+    if not isinstance(meta, dict):
+        raise ValueError(f"load_agent: {path} must hold a JSON object, got {type(meta).__name__}")
+    for key in ("algo", "task", "params"):
+        if key not in meta:
+            raise ValueError(f"load_agent: {path}: key {key!r} is missing")
+    _check_types(meta, _META_TYPES, str(path))
+    meta = dict(meta, params=decode(meta["params"]), policy_kwargs=decode(meta.get("policy_kwargs") or {}))
+    _check_types(meta["params"], _PARAM_TYPES, f"{path} ['params']")
+    _check_types(meta["policy_kwargs"], _POLICY_KWARG_TYPES, f"{path} ['policy_kwargs']")
+    return meta
+
+
 def load_agent(path: str | Path, algo: str | None = None, task: Task | str | None = None, *,
                trust_zip: bool = False, device: str = "cpu"):
     """The agent saved by :func:`train` in ``path`` (its folder or its ``policy.pt``), rebuilt safely.
@@ -358,6 +406,11 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     SB3 zip files contain pickled Python objects that ``load`` unpickles, so a model file from an
     untrusted source can execute arbitrary code on your machine — load only zips you made yourself.
     ``algo`` (and ``task``) are needed for a zip without an ``agent.json`` beside it.
+
+    ``agent.json`` is checked before anything is built: an entry of the wrong JSON type (``params`` or
+    ``policy_kwargs`` not an object, ``seed`` not an int, a recorded hyperparameter or policy argument of the
+    wrong type, e.g. ``n_steps: "32"``), hyperparameters or policy arguments that SB3 or the policy refuse,
+    and weights that do not fit the policy described are a ``ValueError`` naming the file and the key.
     """
     p = Path(path)
     if p.suffix == ".zip":
@@ -372,20 +425,30 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
         env = None if task is None else SB3VecEnv(make_task(task), 1)
         return _sb3_class(algo).load(str(p), env=env, device=device)
     pt = p / "policy.pt" if p.is_dir() else p
-    meta = read_agent_meta(pt)
+    meta_path = pt.parent / "agent.json"
+    meta = _checked_meta(read_agent_meta(pt), meta_path)
     algo = meta["algo"] if algo is None else _algo(algo)
     if algo != meta["algo"]:
         raise ValueError(f"load_agent: {pt} holds a {meta['algo']} agent, not {algo}")
     task = make_task(meta["task"] if task is None else task)
     if task.name != meta["task"]:
         raise ValueError(f"load_agent: {pt} was trained on {meta['task']}, not {task.name}")
-    policy = policy_class(_sb3_class(algo), meta.get("policy", "MlpPolicy"))
-    pk = decode(meta.get("policy_kwargs") or {})
-    model = make_agent(algo, task, int(meta.get("seed", 0)), device=device, params=decode(meta["params"]),
-                       policy=policy, policy_kwargs=pk or None)
+    policy_label = meta.get("policy", "MlpPolicy")
+    policy = policy_class(_sb3_class(algo), policy_label)
+    pk = meta["policy_kwargs"]
+    try:  # values of the right type may still be out of range, or keys unknown to SB3 / the policy
+        model = make_agent(algo, task, meta.get("seed", 0), device=device, params=meta["params"],
+                           policy=policy, policy_kwargs=pk or None)
+    except (TypeError, ValueError, AssertionError, KeyError) as e:
+        raise ValueError(f"load_agent: {meta_path}: keys 'params' / 'policy_kwargs' do not build a {algo} "
+                         f"agent with the policy {policy_label!r}: {type(e).__name__}: {e}") from e
     state = torch.load(pt, map_location=device, weights_only=True)
-    model.policy.load_state_dict(state)
-    model.num_timesteps = int(meta.get("num_timesteps", 0))
+    try:
+        model.policy.load_state_dict(state)
+    except RuntimeError as e:
+        raise ValueError(f"load_agent: the weights in {pt} do not fit the policy that {meta_path} describes "
+                         f"(keys 'policy' / 'policy_kwargs'): {e}") from e
+    model.num_timesteps = meta.get("num_timesteps", 0)
     return model
 
 

@@ -65,8 +65,9 @@ def int_arg(value, name: str, owner: str, minimum: int = 1) -> int:
 
 
 def as_device(device, owner: str) -> torch.device:
-    """``torch.device(device)``, checked usable here (a CUDA device on a torch without CUDA, or a device
-    index that does not exist, is a ``ValueError`` naming the argument instead of an error deep inside)."""
+    """``torch.device(device)``, checked usable here (a CUDA device on a torch without CUDA, a device index
+    that does not exist, or the data-less ``"meta"`` device is a ``ValueError`` naming the argument instead
+    of an error deep inside)."""
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError) as e:
@@ -74,6 +75,9 @@ def as_device(device, owner: str) -> torch.device:
     if dev.type == "cuda" and not torch.cuda.is_available():
         raise ValueError(f"{owner}: argument 'device' is {str(dev)!r} but this torch has no CUDA "
                          f"(torch {torch.__version__}, torch.cuda.is_available() is False); use 'cpu'")
+    if dev.type == "meta":
+        raise ValueError(f"{owner}: argument 'device' is 'meta', which holds shapes but no values; a "
+                         "simulation needs a device with data ('cpu', 'cuda', ...)")
     try:
         torch.empty(0, device=dev)
     except (RuntimeError, AssertionError) as e:

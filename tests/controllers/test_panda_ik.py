@@ -300,3 +300,93 @@ def test_ik_bad_starts_and_settings_name_the_argument(panda):
     # broadcasting starts still work: a per-goal q0 and shared seeds
     r = solve_ik(panda, target, q0=Panda.home(D64).expand(3, 7), seeds=Panda.ik_seeds(D64)[:1])
     assert r.q.shape == (3, 7)
+
+
+# -------------------------------------------------------------- adversarial check after issue 22 (D8, minor)
+def test_ik_a_nan_shared_seed_is_an_error_and_a_per_goal_one_fails_its_goal_alone(panda):
+    """seeds=[home + 0.1, NaN] reported success=False, pos_err=NaN for every goal, although lane 0 alone meets
+    the tolerance.  A shared start is the caller's input: ValueError naming it.  A per-goal start with a NaN
+    fails its goal only (NONFINITE_INPUT); the other goals equal a per-goal loop with finite seeds, and their
+    success is checked against the forward kinematics."""
+    q = Panda.home(D64)
+    target = panda.fk(q).clone()
+    target[:3, 3] += torch.tensor([0.05, 0.0, -0.05], dtype=D64)
+    good = q + 0.1
+    with pytest.raises(ValueError, match="'seeds'.*NaN or inf"):
+        solve_ik(panda, target, seeds=torch.stack([good, torch.full((7,), math.nan, dtype=D64)]))
+    with pytest.raises(ValueError, match="'q0'.*NaN or inf"):
+        solve_ik(panda, target, q0=torch.full((7,), math.inf, dtype=D64))
+    targets = torch.cat([target[None], _goals(2, 31)])
+    seeds = torch.stack([good, good]).expand(3, 2, 7).clone()
+    seeds[1, 1, 3] = math.nan
+    r = solve_ik(panda, targets, seeds=seeds)
+    assert r.reason[1] == Reason.NONFINITE_INPUT and not r.success[1] and torch.isnan(r.pos_err[1])
+    for i in (0, 2):
+        ri = solve_ik(panda, targets[i], seeds=seeds[i])
+        torch.testing.assert_close(r.q[i], ri.q, rtol=0, atol=0)
+        assert bool(r.success[i]) == bool(ri.success)
+    assert bool(r.success[0])
+    T = panda.fk(r.q[0])
+    assert float((T[:3, 3] - target[:3, 3]).norm()) < 1e-3
+
+
+def test_ik_tolerances_that_can_never_be_met_are_refused(panda):
+    """A negative or NaN pos_tol/rot_tol was accepted and never met (max_iter iterations, then failure)."""
+    target = _goals(2, 32)
+    for name in ("pos_tol", "rot_tol"):
+        for bad in (-1e-3, 0.0, math.nan):
+            with pytest.raises(ValueError, match=f"'{name}'.*> 0"):
+                solve_ik(panda, target, **{name: bad})
+    # inf means "not tested": the rotation alone decides (checked against the forward kinematics)
+    r = solve_ik(panda, target, pos_tol=math.inf)
+    R = panda.fk(r.q[r.success])[:, :3, :3]
+    Rt = target[r.success, :3, :3]
+    cos = ((R.mT @ Rt).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    assert bool(r.success.any()) and bool((torch.arccos(cos.clamp(-1, 1)) < 1e-2).all())
+
+
+def test_dls_bad_arguments_name_the_argument():
+    """A float32 twist with a float64 J, an integer J, a damping of the wrong shape raised torch's own errors;
+    zero-width limits made the whole batch NaN; crossed limits were accepted silently."""
+    g = torch.Generator().manual_seed(33)
+    J, tw = torch.randn(2, 6, 7, dtype=D64, generator=g), torch.randn(2, 6, dtype=D64, generator=g)
+    q, z = torch.zeros(2, 7, dtype=D64), torch.zeros(7, dtype=D64)
+    with pytest.raises(TypeError, match="'twist'.*float32"):
+        dls_joint_velocity(J, tw.float(), 0.01)
+    with pytest.raises(TypeError, match="'J'.*int32"):
+        dls_joint_velocity(J.int(), tw, 0.01)
+    with pytest.raises(ValueError, match="'damping'.*\\(3,\\)"):
+        dls_joint_velocity(J, tw, torch.full((3,), 0.01, dtype=D64))
+    with pytest.raises(TypeError, match="'damping'"):
+        dls_joint_velocity(J, tw, torch.full((2,), 0.01))
+    with pytest.raises(ValueError, match="'nullspace_gain'"):
+        dls_joint_velocity(J, tw, 0.01, q, (z - 1, z + 1), nullspace_gain=torch.ones(3, dtype=D64))
+    with pytest.raises(ValueError, match="'q'.*\\(\\*B, 7\\)"):
+        dls_joint_velocity(J, tw, 0.01, q=torch.zeros(3, 7, dtype=D64), q_limits=(z - 1, z + 1))
+    nan_hi = torch.where(torch.arange(7) == 2, math.nan, 1.0).double()
+    for lo, hi in ((z, z), (z + 1, z - 1), (z - 1, nan_hi)):
+        with pytest.raises(ValueError, match="'q_limits'.*q_min < q_max"):
+            dls_joint_velocity(J, tw, 0.01, q=q, q_limits=(lo, hi))
+
+
+def test_dls_an_unbounded_joint_gets_no_limit_avoidance():
+    """q_limits with ±inf (a continuous joint) made every element NaN ((−inf + inf)/2 in the mid-range).  The
+    Liégeois term of that joint is 0 (its limit as the range grows); numpy per sample is the reference."""
+    np = pytest.importorskip("numpy")
+    robot = Panda()
+    gen = torch.Generator().manual_seed(34)
+    q = Panda.random_q(3, generator=gen, dtype=D64)
+    J, xi = robot.jacobian(q), torch.randn(3, 6, generator=gen, dtype=D64)
+    lo, hi = Panda.joint_limits(D64)
+    lo, hi = lo.clone(), hi.clone()
+    lo[6], hi[6] = -math.inf, math.inf
+    hi[0] = math.inf  # one-sided
+    qd = dls_joint_velocity(J, xi, 0.05, q, (lo, hi), nullspace_gain=2.0)
+    for i in range(3):
+        Ji, qi = J[i].numpy(), q[i].numpy()
+        bounded = np.isfinite(lo.numpy()) & np.isfinite(hi.numpy())
+        l, h = np.where(bounded, lo.numpy(), 0.0), np.where(bounded, hi.numpy(), 1.0)
+        zi = np.where(bounded, -2.0 * (qi - 0.5 * (l + h)) / ((h - l) ** 2 * 7), 0.0)
+        Jp = np.linalg.pinv(Ji, rcond=7 * np.finfo(np.float64).eps)
+        ref = Ji.T @ np.linalg.solve(Ji @ Ji.T + 0.05 ** 2 * np.eye(6), xi[i].numpy()) + zi - Jp @ (Ji @ zi)
+        np.testing.assert_allclose(qd[i].numpy(), ref, rtol=1e-9, atol=1e-12)

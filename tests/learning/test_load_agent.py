@@ -142,3 +142,40 @@ def test_train_refuses_counts_that_are_not_ints(tmp_path):
         args = dict(budget_steps=64, seed=0, eval_episodes=1) | kw
         with pytest.raises(ValueError, match=f"train: argument '{name}' must be an int"):
             bl.train("ppo", TASK, params=dict(TINY), tensorboard=False, **args)
+
+
+@pytest.fixture(scope="module")
+def mlp_agent(tmp_path_factory):
+    out = tmp_path_factory.mktemp("mlp_agent")
+    _train(out)
+    return out
+
+
+def _tampered(src, dst, edit):
+    for f in ("policy.pt", "agent.json"):
+        (dst / f).write_bytes((src / f).read_bytes())
+    meta = json.loads((dst / "agent.json").read_text())
+    edit(meta)
+    (dst / "agent.json").write_text(json.dumps(meta))
+    return dst / "agent.json"
+
+
+@pytest.mark.parametrize("edit, key", [
+    (lambda m: m.update(policy_kwargs="abc"), "'policy_kwargs' must be dict"),
+    (lambda m: m.update(params=[1, 2]), "'params' must be dict"),
+    (lambda m: m.update(seed="0"), "'seed' must be int"),
+    (lambda m: m["params"].update(n_steps="32"), "\\['params'\\]: key 'n_steps' must be int"),
+    (lambda m: m["params"].update(gamma=True), "'gamma' must be int or float"),
+    (lambda m: m["params"].update(use_sde=1), "'use_sde' must be bool"),
+    (lambda m: m.update(policy_kwargs={"net_arch": "64"}), "'policy_kwargs'\\]: key 'net_arch' must be list"),
+    (lambda m: m.update(policy_kwargs={"activation_fn": "relu"}), "'activation_fn' must be type"),
+    (lambda m: m.update(policy_kwargs={"bogus": 1}), "'params' / 'policy_kwargs' do not build a ppo agent"),
+    (lambda m: m.update(policy_kwargs={"net_arch": [8]}), "do not fit the policy.*'policy_kwargs'"),
+])
+def test_a_tampered_agent_json_is_a_value_error_naming_the_file_and_the_key(mlp_agent, tmp_path, edit, key):
+    """Wrong types in agent.json's params/policy_kwargs failed deep inside SB3/torch (dict() of a string,
+    a str n_steps in a range(), missing keys in load_state_dict) without naming the file or the entry."""
+    meta = _tampered(mlp_agent, tmp_path, edit)
+    with pytest.raises(ValueError, match=key) as err:
+        bl.load_agent(tmp_path)
+    assert str(meta) in str(err.value)

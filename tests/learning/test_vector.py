@@ -357,3 +357,12 @@ def test_a_device_torch_cannot_use_is_refused_in_the_constructor(monkeypatch):
         TaskVectorEnv("PendulumSwingUp", 2, device="cuda")
     with pytest.raises(ValueError, match="'device'"):
         TaskVectorEnv("PendulumSwingUp", 2, device="gpu0")
+
+
+def test_the_meta_device_is_refused_in_the_constructor():
+    """device='meta' (shapes without values) was accepted and failed at reset with torch's
+    'Tensor.item() cannot be called on meta tensors'."""
+    with pytest.raises(ValueError, match="'device'.*'meta'"):
+        TaskVectorEnv("PendulumSwingUp", 2, device="meta")
+    with pytest.raises(ValueError, match="'device'.*'meta'"):
+        TaskVectorEnv("PendulumSwingUp", 2, device=torch.device("meta"))
