@@ -27,13 +27,6 @@ from learning.policies import MPCExpert
 D64 = torch.float64
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 @dataclass(frozen=True, eq=False)
 class NearUpright(PendulumSwingUp):

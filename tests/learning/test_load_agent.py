@@ -19,13 +19,6 @@ TASK = "PendulumSwingUp"
 TINY = dict(n_envs=2, n_steps=32, batch_size=64, n_epochs=1)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _obs(n=7, seed=0):
     """Observations of states near the goal (unsaturated MPC actions, so the weights show) and at random."""

@@ -17,13 +17,6 @@ H, IT = 10, 3  # short horizon, few iterations: fast tests
 PK = dict(horizon=H, max_iter=IT)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
 
 def _model(task="PendulumSwingUp", **kw):
     return make_mpc_ppo(task, num_envs=2, n_steps=64, batch_size=64, n_epochs=1, seed=0,
