@@ -104,7 +104,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-__all__ = ["BoxQPStatus", "BoxQPResult", "box_qp", "masked_hessian"]
+__all__ = ["BoxQPStatus", "BoxQPResult", "box_qp", "masked_hessian", "at_lower"]
 
 
 class BoxQPStatus(enum.IntEnum):
@@ -330,6 +330,15 @@ def box_qp(
     )
 
 
+def at_lower(x: Tensor, lo: Tensor, hi: Tensor, grad: Tensor) -> Tensor:
+    """Which bound a clamped variable sits on (True: the lower one), for the derivative of a solution with
+    respect to its bounds: the nearer bound, compared as distances (exact with an infinite other bound,
+    where a midpoint would be infinite), and where ``lower == upper`` the one the gradient ``grad`` of the
+    objective pushes against (``grad ≥ 0``: the minimizer would go lower)."""
+    dlo, dhi = x - lo, hi - x
+    return (dlo < dhi) | ((dlo == dhi) & (grad >= 0))
+
+
 def _detached(v):
     return v.detach() if isinstance(v, Tensor) else v
 
@@ -345,7 +354,8 @@ def _with_face_derivative(H: Tensor, g: Tensor, lower, upper, res: BoxQPResult) 
     hi = torch.as_tensor(upper, dtype=H.dtype, device=H.device).expand_as(x)
     free = ~clamped
     xd = x.detach()
-    on_lo = clamped & ((xd - lo.detach()) <= (hi.detach() - xd))  # exact with an infinite other bound
+    grad = g.detach() + (H.detach() @ xd.unsqueeze(-1)).squeeze(-1)
+    on_lo = clamped & at_lower(xd, lo.detach(), hi.detach(), grad)
     usable = torch.isfinite(xd).all(-1) & res.status.ne(int(BoxQPStatus.NON_FINITE))
     good = usable.unsqueeze(-1)
     eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
@@ -486,7 +496,7 @@ def _certify(H, g, lo, hi, x, dsq, hsc, tol: float, gap_tol: float, need: Tensor
     ``H`` is not positive definite up to ``mε`` the gap is ``inf`` and ``convex`` is false.)
     """
     grad, clamped, res, kkt_tol = _kkt(H, g, lo, hi, x, dsq, hsc, tol)
-    kok = res <= kkt_tol
+    kok = (res <= kkt_tol) & torch.isfinite(kkt_tol)  # an overflowed scale certifies nothing
     need = kok if need is None else need | kok
     gap = torch.full_like(res, torch.inf)
     gtol = torch.full_like(res, torch.nan)
@@ -500,7 +510,7 @@ def _certify(H, g, lo, hi, x, dsq, hsc, tol: float, gap_tol: float, need: Tensor
         gj, sj, cj = _objective_gap(H[j], g[j], lo[j], hi[j], x[j], dsq[j])
         gap, convex = gap.index_copy(0, j, gj), convex.index_copy(0, j, cj)
         gtol = gtol.index_copy(0, j, gap_tol * sj)
-    return _Cert(grad, clamped, res, kkt_tol, gap, gtol, kok & (gap <= gtol), convex)
+    return _Cert(grad, clamped, res, kkt_tol, gap, gtol, kok & (gap <= gtol) & torch.isfinite(gtol), convex)
 
 
 def _objective_gap(H, g, lo, hi, x, dsq) -> tuple[Tensor, Tensor, Tensor]:

@@ -31,6 +31,7 @@ caller holds (:func:`controllers.riccati.prepare`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -57,6 +58,7 @@ __all__ = [
     "CanonicalCost",
     "ResidualCost",
     "PeriodicQuadraticCost",
+    "stand_in_cost",
     "cost_derivatives",
     "autograd_derivatives",
     "hessian_rows",
@@ -441,6 +443,27 @@ class PeriodicQuadraticCost:
 
     def derivatives(self, x: Tensor, u: Tensor):
         return self.base.derivatives(self.wrapped(x), u)
+
+
+def stand_in_cost(cost, bad: Tensor):
+    """``cost`` with the batched fields of a :class:`QuadraticCost` (or a periodic one's base) replaced by
+    identity weights and zero terms in the elements that failed their input check, so that no NaN or
+    indefinite weight of one element reaches another's gradient (through a shared reference, say); such
+    an element is returned as NaN anyway.  Fields shared by the batch were validated at construction."""
+    base = cost.base if isinstance(cost, PeriodicQuadraticCost) else cost
+    if not isinstance(base, QuadraticCost):
+        return cost
+    fields = {}
+    for name, k in (("Q", 3), ("R", 3), ("N", 3), ("x_ref", 2), ("u_ref", 2), ("q", 2), ("r", 2)):
+        v = getattr(base, name)
+        if v is None or v.dim() == k:
+            continue
+        safe = torch.eye(v.shape[-1], dtype=v.dtype, device=v.device) if name in ("Q", "R") else 0.0
+        fields[name] = torch.where(bad.view(*bad.shape, *([1] * k)), safe, v)
+    if not fields:
+        return cost
+    base = dataclasses.replace(base, check=False, **fields)
+    return dataclasses.replace(cost, base=base) if isinstance(cost, PeriodicQuadraticCost) else base
 
 
 # --------------------------------------------------------------------------------------------------

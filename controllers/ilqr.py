@@ -60,7 +60,7 @@ from torch import Tensor
 
 from controllers._validate import broadcast_batch, check_limit, enum_arg, time_major
 from controllers.boxqp import box_qp, masked_hessian
-from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, cost_derivatives
+from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, cost_derivatives, stand_in_cost
 from controllers.dynamics import (
     LinearDynamics,
     System,
@@ -611,27 +611,6 @@ def _input_status(cost, x0: Tensor, u_init: Tensor, lo: Tensor | None, hi: Tenso
     return reason, lo, hi
 
 
-def _sanitized(cost, bad: Tensor):
-    """``cost`` with the batched fields of a :class:`QuadraticCost` (or a periodic one's base) replaced by
-    identity weights and zero terms in the elements that failed their input check, so that no NaN or
-    indefinite weight of one element reaches another's gradient (through a shared reference, say); such
-    an element is returned as NaN anyway.  Fields shared by the batch were validated at construction."""
-    base = cost.base if isinstance(cost, PeriodicQuadraticCost) else cost
-    if not isinstance(base, QuadraticCost):
-        return cost
-    fields = {}
-    for name, k in (("Q", 3), ("R", 3), ("N", 3), ("x_ref", 2), ("u_ref", 2), ("q", 2), ("r", 2)):
-        v = getattr(base, name)
-        if v is None or v.dim() == k:
-            continue
-        safe = torch.eye(v.shape[-1], dtype=v.dtype, device=v.device) if name in ("Q", "R") else 0.0
-        fields[name] = torch.where(bad.view(*bad.shape, *([1] * k)), safe, v)
-    if not fields:
-        return cost
-    base = dataclasses.replace(base, check=False, **fields)
-    return dataclasses.replace(cost, base=base) if isinstance(cost, PeriodicQuadraticCost) else base
-
-
 def _bcast(v: Tensor | None, shape) -> Tensor | None:
     return None if v is None else v.expand(shape)
 
@@ -695,7 +674,7 @@ def ilqr(
     x0 = problem.x0.expand(*bs, n)
     inp, lo, hi = _input_status(problem.cost, x0, u_init, lo, hi, bs)
     bad = inp != int(Reason.CONVERGED)
-    problem = dataclasses.replace(problem, cost=_sanitized(problem.cost, bad))
+    problem = dataclasses.replace(problem, cost=stand_in_cost(problem.cost, bad))
     zero = torch.zeros((), **kw)
     x0s = torch.where(bad.unsqueeze(-1), zero, x0)
     u0 = _clip(torch.where(bad[..., None, None], zero, u_init), lo, hi)

@@ -29,7 +29,7 @@ from __future__ import annotations
 import torch
 
 from controllers import _lq_kernels as _k
-from controllers.boxqp import masked_hessian
+from controllers.boxqp import at_lower, masked_hessian
 from controllers.costs import cost_derivatives, hessian_rows, lq_coefficients
 from controllers.dynamics import step_all, trajectory_jacobians
 
@@ -241,15 +241,16 @@ def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, fused: bool
 
 
 def _bound_motion(u: torch.Tensor, free: torch.Tensor, lo: torch.Tensor | None,
-                  hi: torch.Tensor | None) -> torch.Tensor | None:
+                  hi: torch.Tensor | None, grad: torch.Tensor) -> torch.Tensor | None:
     """``(*B, T, m)``, zero in value: ``b - sg(b)`` on the clamped controls, ``b`` the limit each sits on
-    (the nearer one: never a midpoint of possibly infinite limits), zero on the free ones; None when no limit
-    has a graph.  Its derivative is the identity from a clamped control's limit to that control."""
+    (:func:`controllers.boxqp.at_lower`: the nearer one, never a midpoint of possibly infinite limits; at
+    equal limits the one ``grad = ∇_u J`` pushes against), zero on the free ones; None when no limit has a
+    graph.  Its derivative is the identity from a clamped control's limit to that control."""
     if lo is None or not (lo.requires_grad or hi.requires_grad):
         return None
     clamped = ~free
-    at_hi = clamped & ((hi - u).abs() < (u - lo).abs())  # an infinite limit is never the nearer one
-    b = torch.where(clamped, torch.where(at_hi, hi, lo), u)
+    on_lo = at_lower(u, lo.detach(), hi.detach(), grad.detach())
+    b = torch.where(clamped, torch.where(on_lo, lo, hi), u)
     return b - b.detach()
 
 
@@ -280,7 +281,7 @@ def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
         c0 = x0 - xs[..., 0, :]
         L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * cdyn).sum() + (lam[..., 0, :] * c0).sum()
         rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
-        db = _bound_motion(u, free, lo, hi)
+        db = _bound_motion(u, free, lo, hi, ru)
         moved = db is not None or any(v.requires_grad for v in (c0, cdyn))
         if not moved and not _depends_on_params(rx, ru, xs, us):
             return x, u

@@ -78,7 +78,7 @@ import torch
 from torch import Tensor
 
 from controllers._validate import all_finite, broadcast_batch, check_limit, check_weight, enum_arg
-from controllers.boxqp import BoxQPStatus, box_qp, masked_hessian
+from controllers.boxqp import BoxQPStatus, at_lower, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
 from controllers.problem import GradMode, LQProblem, Reason, SolverStatus
@@ -1035,10 +1035,9 @@ def _boxminus_jacobian(M, x_bar, x_ref) -> Tensor:
 def _active_set_solve(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, clamped: Tensor, x: Tensor) -> Tensor:
     """The box-QP minimizer recomputed with autograd on the active set found by the solver: clamped
     components at their (differentiable) bounds, the free ones from ``H_ff x_f = −(g + H_fc x_c)``."""
-    # the nearer bound, compared as distances: exact with an infinite bound (a midpoint of lo = -inf and a
-    # finite hi would be -inf and put a control clamped at hi on lo)
     xd = x.detach()
-    at_lo = clamped & ((xd - lo.detach()) <= (hi.detach() - xd))
+    grad = g.detach() + (H.detach() @ xd.unsqueeze(-1)).squeeze(-1)
+    at_lo = clamped & at_lower(xd, lo.detach(), hi.detach(), grad)
     xc = torch.where(clamped, torch.where(at_lo, lo, hi), torch.zeros((), dtype=H.dtype))
     free = ~clamped
     rhs = -(g + (H @ xc.unsqueeze(-1)).squeeze(-1))

@@ -25,7 +25,7 @@ import torch
 
 from controllers._lq_kernels import assemble_cost, solve_core
 from controllers._validate import enum_arg
-from controllers.costs import CanonicalCost, QuadraticCost
+from controllers.costs import CanonicalCost, QuadraticCost, stand_in_cost
 from controllers.dynamics import LinearDynamics
 from controllers.implicit import lqr_implicit
 from controllers.problem import GradMode, LQProblem, LQSolution, Reason, SolverStatus, cost_status_of
@@ -159,15 +159,19 @@ def solve(problem: LQProblem, grad: GradMode | str = GradMode.IMPLICIT, check: b
                              f"prepare(problem.cost, {T}, {tuple(problem.batch_shape)}) (got a cost "
                              f"{'of this problem' if prepared.cost is cost else 'of another problem'}, "
                              f"T={prepared.T}, batch_shape={tuple(prepared.batch_shape)})")
+    inp = None
+    if check:
+        # an element whose inputs failed is solved on stand-in data (identity weights and dynamics, zero
+        # elsewhere): its NaN/inf would otherwise reach a shared parameter's gradient as 0·inf
+        inp = problem.input_status(None if prepared is None else prepared.status)
+        if prepared is None:
+            cost = stand_in_cost(cost, inp != 0)
+    if prepared is not None:
         cc, stage = prepared.canonical, (prepared.C, prepared.VT)
     else:
         cc = cost.canonical(T)
     data = [d.A, d.B, d.c, cc.Q, cc.R, cc.N, cc.q, cc.r, problem.x0]
-    inp = None
-    if check:
-        inp = problem.input_status(None if prepared is None else prepared.status)
-        # an element whose inputs failed is solved on stand-in data (identity weights and dynamics, zero
-        # elsewhere): its NaN/inf would otherwise reach a shared parameter's gradient as 0·inf
+    if inp is not None:
         data = [_stand_in(inp != 0, v, k, eye) for v, k, eye in zip(data, _EVENT_DIMS, _IDENTITY)]
     x, u, K, k, J, info = lqr(*data, T, grad, fused, _stage=stage)
     J = J + cc.const

@@ -533,3 +533,30 @@ def test_gradient_of_a_batch_with_a_nan_element_is_isolated():
     g2 = g0[[0, 2]].clone().requires_grad_(True)
     (dg2,) = torch.autograd.grad(box_qp(H[[0, 2]], g2, -0.1, 0.1).x.sum(), g2)
     torch.testing.assert_close(dg[[0, 2]], dg2, rtol=1e-12, atol=1e-14)
+
+
+def test_an_overflowing_warm_start_is_not_certified():
+    """x0 = 1e155 (finite, feasible) makes ½xᵀHx and both tolerances overflow: inf ≤ inf once certified
+    it (CONVERGED at 1e155 for H = I, g = 0); the solver must return the minimizer or a failure."""
+    D = torch.float64
+    for g, x0 in ((torch.zeros(4, dtype=D), torch.full((4,), 1e155, dtype=D)),
+                  (torch.ones(5, dtype=D), torch.tensor([0.0, 0.0, 1e160, 0.0, 0.0], dtype=D))):
+        res = box_qp(torch.eye(g.shape[0], dtype=D), g, -torch.inf, torch.inf, x0)
+        if res.converged:
+            torch.testing.assert_close(res.x, -g, rtol=0, atol=1e-12)
+            assert bool(torch.isfinite(res.gap_tolerance)) and bool(torch.isfinite(res.kkt_tolerance))
+
+
+@pytest.mark.parametrize("m", [1, 2, 4])
+def test_at_equal_bounds_the_derivative_goes_to_the_bound_that_binds(m):
+    """lo = hi = 1 with the unconstrained minimizer at 5: x = hi for every feasible perturbation, so
+    dx/dhi = 1 and dx/dlo = 0 (one-sided differences); a tie of the nearer-bound rule once picked lo."""
+    D = torch.float64
+    lo = torch.ones(m, dtype=D, requires_grad=True)
+    hi = torch.ones(m, dtype=D, requires_grad=True)
+    res = box_qp(torch.eye(m, dtype=D), torch.full((m,), -5.0, dtype=D), lo, hi)
+    dlo, dhi = torch.autograd.grad(res.x.sum(), (lo, hi))
+    assert dlo.tolist() == [0.0] * m and dhi.tolist() == [1.0] * m
+    h = 1e-6
+    up = box_qp(torch.eye(m, dtype=D), torch.full((m,), -5.0, dtype=D), 1.0, 1.0 + h).x.sum()
+    assert abs(float(up - res.x.sum()) / h - m) < 1e-6  # raising hi moves x one for one

@@ -175,3 +175,57 @@ def test_a_float_limit_no_control_satisfies_is_a_value_error():
     lo = torch.tensor([[[-1.0]], [[math.inf]]], dtype=D)
     sol = ilqr(ILQRProblem(Pendulum(), cost, x0, 5, u_lower=lo, u_upper=2.0), grad="none")
     assert sol.status.reason.tolist() == [int(Reason.CONVERGED), int(Reason.INFEASIBLE_BOUNDS)]
+
+
+def _one_sided_limit_fd(solve, lo, hi, h=1e-6):
+    """Per-entry one-sided differences of ``solve(lo, hi).sum()``: raise ``hi`` / lower ``lo`` (the only
+    feasible moves when ``lo == hi``)."""
+    with torch.no_grad():
+        base = float(solve(lo, hi).sum())
+        dlo, dhi = torch.zeros_like(lo), torch.zeros_like(hi)
+        for i in range(lo.numel()):
+            e = torch.zeros_like(lo).reshape(-1)
+            e[i] = h
+            e = e.reshape(lo.shape)
+            dhi.view(-1)[i] = (float(solve(lo, hi + e).sum()) - base) / h
+            dlo.view(-1)[i] = (base - float(solve(lo - e, hi).sum())) / h
+    return dlo, dhi
+
+
+@pytest.mark.parametrize("which", ["ilqr", "error_state_mpc"])
+def test_at_equal_limits_the_derivative_goes_to_the_limit_that_binds(which):
+    """u_lower == u_upper pins every control; its derivative belongs to the limit the cost pushes against
+    (one-sided differences), not always to the lower one (the nearer-bound rule's tie)."""
+    from controllers.manifold_mpc import ErrorStateMPC
+    from torchlie.manifolds import Euclidean
+
+    D, T = torch.float64, 5
+    lim = torch.tensor([[0.2], [0.2], [-0.1], [0.2], [0.2]], dtype=D)
+    if which == "ilqr":
+        Q = torch.diag(torch.tensor([1.0, 0.1], dtype=D))
+        ref = torch.tensor([math.pi, 0.0], dtype=D)
+        cost = QuadraticCost(Q=Q, R=torch.tensor([[0.01]], dtype=D), x_ref=ref)
+        x0 = torch.tensor([[0.1, 0.0]], dtype=D)
+
+        def solve(lo, hi):
+            return ilqr(ILQRProblem(Pendulum(dt=0.05), cost, x0, T, u_lower=lo, u_upper=hi)).u
+    else:
+        class DoubleIntegrator:
+            manifold, m, dt = Euclidean(2), 1, 0.5
+
+            def f(self, x, u):
+                return torch.stack([x[..., 1], u[..., 0]], -1)
+
+        x0 = torch.tensor([-2.0, 0.0], dtype=D)
+        xr, ur = torch.zeros(T + 1, 2, dtype=D), torch.zeros(T, 1, dtype=D)
+
+        def solve(lo, hi):
+            return ErrorStateMPC(DoubleIntegrator(), T, torch.tensor([1.0, 0.1], dtype=D),
+                                 torch.tensor([0.01], dtype=D), u_lower=lo, u_upper=hi).solve(x0, xr, ur).U
+    lo, hi = lim.clone().requires_grad_(True), lim.clone().requires_grad_(True)
+    glo, ghi = torch.autograd.grad(solve(lo, hi).sum(), (lo, hi))
+    flo, fhi = _one_sided_limit_fd(solve, lim, lim)
+    torch.testing.assert_close(glo, flo, rtol=0, atol=1e-5)
+    torch.testing.assert_close(ghi, fhi, rtol=0, atol=1e-5)
+    torch.testing.assert_close(glo + ghi, torch.ones_like(lim), rtol=0, atol=1e-9)  # each pinned control
+    assert float(ghi.sum()) >= 1  # the regime: some controls pushed against the upper limit

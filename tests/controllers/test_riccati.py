@@ -430,7 +430,7 @@ def test_scaling_the_cost_does_not_change_the_plan(grad):
 
 
 @pytest.mark.parametrize("grad", ["implicit", "unrolled"])
-@pytest.mark.parametrize("bad", ["x0 inf", "R nan at one step", "Q not PSD"])
+@pytest.mark.parametrize("bad", ["x0 inf", "R nan at one step", "Q not PSD", "x_ref nan"])
 def test_an_input_failure_adds_nothing_to_a_shared_dynamics_gradient(grad, bad):
     """An element whose inputs failed is solved on stand-in data: the gradient of a shared A from the
     good element equals that of the good element alone (before: NaN, as 0·inf)."""
@@ -450,17 +450,22 @@ def test_an_input_failure_adds_nothing_to_a_shared_dynamics_gradient(grad, bad):
         x0[1, 0] = math.inf
     elif bad == "R nan at one step":
         R[1, 2] = math.nan
-    else:
+    elif bad == "Q not PSD":
         Q[1, 0, 1, 1] = -1.0
+    x_ref = torch.ones(2, T + 1, 2, dtype=D)
+    if bad == "x_ref nan":  # enters the canonical q and constant before any stand-in of the LQ data
+        x_ref[1, 0, 0] = math.nan
 
     def grad_of(idx):
         A = A0.clone().requires_grad_(True)
-        cost = QuadraticCost(Q=Q[idx], R=R[idx])
+        w = torch.tensor(1.0, dtype=D, requires_grad=True)  # a shared weight scale
+        cost = QuadraticCost(Q=Q[idx] * w, R=R[idx], x_ref=x_ref[idx])
         sol = riccati.solve(LQProblem(LinearDynamics(A, B), cost, x0[idx], T), grad=grad)
-        (gA,) = torch.autograd.grad(sol.u[0].sum() + sol.cost[0], A)
-        return sol, gA
+        gA, gw = torch.autograd.grad(sol.u[0].sum() + sol.cost[0], (A, w))
+        return sol, gA, gw
 
-    sol, gA = grad_of([0, 1])
+    sol, gA, gw = grad_of([0, 1])
     assert sol.status.reason[0] == 0 and sol.status.reason[1] != 0
-    _, g_alone = grad_of([0])
-    torch.testing.assert_close(gA, g_alone, rtol=1e-12, atol=1e-14)
+    _, gA_alone, gw_alone = grad_of([0])
+    torch.testing.assert_close(gA, gA_alone, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(gw, gw_alone, rtol=1e-12, atol=1e-14)
