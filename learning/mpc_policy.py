@@ -192,6 +192,10 @@ class MPCExtractor(nn.Module):
         cost_net_arch, log_scale_range, target_offset, wrap_angles, terminal_factor: of
             :class:`LearnedTaskCost`.
         vf_arch, activation_fn: the critic MLP.
+
+    A non-finite MPC action (a solve that failed, e.g. on a NaN observation) would make PPO's Gaussian and
+    every later update NaN: it is replaced by 0 (no action) and counted in the buffer
+    ``nonfinite_actions`` (no host sync), which the caller can read and report.
     """
 
     def __init__(self, task: Task, features_dim: int, *, horizon: int, max_iter: int = 5,
@@ -212,6 +216,7 @@ class MPCExtractor(nn.Module):
         opts = options if options is not None else ILQROptions(max_iter=max_iter)
         self.mpc = MPCPolicy(task.system, horizon, cost, u_lower=-umax, u_upper=umax, grad=grad, options=opts)
         self.register_buffer("u_max", umax)
+        self.register_buffer("nonfinite_actions", torch.zeros((), dtype=torch.int64), persistent=False)
         dims = torch.zeros(task.n, dtype=torch.bool)
         dims[angle_dims(task)] = True
         self.register_buffer("angle_mask", dims)
@@ -231,7 +236,9 @@ class MPCExtractor(nn.Module):
     def forward_actor(self, features: Tensor) -> Tensor:
         u, _ = self.mpc(self.state(features))  # no warm start in, the one returned is dropped
         a = u / self.u_max
-        return torch.where(torch.isfinite(a), a, torch.zeros((), dtype=a.dtype, device=a.device))
+        finite = torch.isfinite(a)
+        self.nonfinite_actions += (~finite).sum()
+        return torch.where(finite, a, torch.zeros((), dtype=a.dtype, device=a.device))
 
     def forward_critic(self, features: Tensor) -> Tensor:
         return self.value_net(features)

@@ -130,6 +130,21 @@ def test_implicit_gradient_of_the_action_equals_finite_differences():
         torch.testing.assert_close(J[:, j], fd, rtol=1e-5, atol=1e-7)
 
 
+def test_a_nonfinite_mpc_action_is_replaced_and_counted():
+    """A NaN observation makes that element's solve fail: its action is 0 (PPO's Gaussian stays finite),
+    the others equal their solve alone, and the replacement is counted, not silent."""
+    from learning.mpc_policy import MPCExtractor
+
+    task = make_task("PendulumSwingUp")
+    ex = MPCExtractor(task, task.obs_dim, horizon=8).double()
+    obs = task.observe(torch.tensor([[0.3, 0.0], [1.0, 0.5]], dtype=torch.float64))
+    bad = torch.cat([obs[:1], torch.full_like(obs[:1], math.nan), obs[1:]])
+    assert int(ex.nonfinite_actions) == 0
+    a = ex.forward_actor(bad)
+    assert a[1].tolist() == [0.0] * task.m and int(ex.nonfinite_actions) == task.m
+    torch.testing.assert_close(a[[0, 2]], ex.forward_actor(obs), rtol=0, atol=1e-12)
+
+
 def test_any_batch_size_batched_equals_loop():
     model = _model()
     _perturb(model.policy)
