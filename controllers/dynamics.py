@@ -333,7 +333,8 @@ def _jacobians(f, x: torch.Tensor, u: torch.Tensor, t: int, method: JacobianMeth
             return y, y
 
         (A, B), y = torch.func.vmap(torch.func.jacrev(single, argnums=(0, 1), has_aux=True))(xf, uf)
-        return y.reshape(*bs, -1), A.reshape(*bs, -1, n), B.reshape(*bs, -1, m)
+        k = y.shape[-1]  # explicit sizes: -1 is ambiguous for an empty batch
+        return y.reshape(*bs, k), A.reshape(*bs, k, n), B.reshape(*bs, k, m)
     # batch-sum: d/dx Σ_b f(x_b) has, for an element-wise-independent f, the per-element Jacobians
     nb = len(bs)
 

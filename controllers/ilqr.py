@@ -656,6 +656,9 @@ def ilqr(
     method = enum_arg(ILQRMethod, method, "method", "ilqr")
     grad = enum_arg(GradMode, grad, "grad", "ilqr")
     opts = options if options is not None else ILQROptions()
+    if opts.second_order and torch.is_inference_mode_enabled():
+        raise ValueError("ilqr: ILQROptions(second_order=True) differentiates the Lagrangian twice and "
+                         "cannot run under torch.inference_mode(); use torch.no_grad() (or grad='none')")
     T, n, m = problem.T, problem.n, problem.m
     dtype, device = problem.dtype, problem.device
     bs = problem.batch_shape

@@ -334,7 +334,11 @@ def reduced_hessian_pd(problem, x: torch.Tensor, u: torch.Tensor, free: torch.Te
     with torch.enable_grad():
         xs = x.clone().requires_grad_(True)
         us = u.clone().requires_grad_(True)
-        L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * step_all(dyn, xs[..., :T, :], us)).sum()
+        y = step_all(dyn, xs[..., :T, :], us)
+        if not y.requires_grad:  # the dynamics' second derivatives would be dropped without a word
+            raise ValueError("ILQROptions(second_order=True) needs a system whose step autograd can "
+                             f"differentiate (twice); {type(dyn).__name__}.step returned no graph")
+        L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * y).sum()
         rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
         Hxx, Hxu, Huu = hessian_rows(rx, ru, xs, us, n, m)
     fm = free.to(x.dtype)

@@ -259,3 +259,29 @@ def test_second_order_check_holds_at_a_constrained_minimum():
     assert bool(plain.clamped.any())  # the regime: some controls on their limits
     assert checked.status.reason.tolist() == plain.status.reason.tolist()
     assert bool(plain.status.converged.all())
+
+
+def test_second_order_check_refuses_what_it_cannot_decide():
+    """A step autograd cannot follow (numpy inside, analytic Jacobian given) would drop the dynamics'
+    second derivatives and pass a maximum (x' = x + 0.1u², u = 0); inference mode has no autograd: both
+    are ValueErrors instead of a silent CONVERGED or a deep RuntimeError."""
+    from controllers.dynamics import NonlinearDynamics
+
+    D = torch.float64
+
+    def opaque(x, u, t):
+        return torch.from_numpy((x + 0.1 * u**2).detach().numpy())
+
+    def jac(x, u, t):
+        return torch.ones(*x.shape, 1, dtype=D), (0.2 * u).unsqueeze(-1)
+
+    cost = QuadraticCost(Q=torch.eye(1, dtype=D), R=torch.eye(1, dtype=D) * 0.01,
+                         x_ref=torch.tensor([5.0], dtype=D))
+    prob = ILQRProblem(NonlinearDynamics(opaque, 1, 1, jacobian=jac, time_invariant=True), cost,
+                       torch.zeros(1, 1, dtype=D), 4)
+    with pytest.raises(ValueError, match="second_order.*step"):
+        ilqr(prob, grad="none", options=ILQROptions(second_order=True))
+    pend_cost = QuadraticCost(Q=torch.eye(2, dtype=D), R=torch.eye(1, dtype=D))
+    pend = ILQRProblem(Pendulum(dt=0.05), pend_cost, torch.zeros(1, 2, dtype=D), 5)
+    with torch.inference_mode(), pytest.raises(ValueError, match="inference_mode"):
+        ilqr(pend, grad="none", options=ILQROptions(second_order=True))

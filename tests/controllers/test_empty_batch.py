@@ -128,3 +128,22 @@ def test_pose_mpc_empty_batch(frame, limited):
     assert sol.U.shape == (0, T, 6) and sol.status.reason.shape == (0,)
     (gQ,) = torch.autograd.grad(sol.U.sum(), Q, allow_unused=True)
     assert gQ is None or not bool(gQ.any())
+
+
+@pytest.mark.parametrize("time_invariant", [True, False])
+def test_ilqr_empty_batch_with_autograd_jacobians(time_invariant):
+    """A NonlinearDynamics without an analytic Jacobian (vmap'd jacrev) on batch 0: empty results (the
+    reshape to (*B, -1, n) was ambiguous)."""
+    from controllers.costs import QuadraticCost
+    from controllers.dynamics import NonlinearDynamics
+    from controllers.ilqr import ILQRProblem, ilqr
+
+    D = torch.float64
+
+    def f(x, u, t):
+        return x + 0.1 * torch.sin(u)
+
+    cost = QuadraticCost(Q=torch.eye(2, dtype=D), R=torch.eye(2, dtype=D))
+    dyn = NonlinearDynamics(f, 2, 2, time_invariant=time_invariant)
+    sol = ilqr(ILQRProblem(dyn, cost, torch.zeros(0, 2, dtype=D), 5), grad="none")
+    assert tuple(sol.u.shape) == (0, 5, 2) and tuple(sol.x.shape) == (0, 6, 2)
