@@ -89,7 +89,7 @@ def test_load_refuses_an_unregistered_policy_name_without_importing_it(mpc_agent
 
 def test_what_cannot_be_recorded_is_refused_before_training(tmp_path):
     class Custom(ActorCriticPolicy):
-        pass
+        """An SB3 policy subclass nobody registered: agent.json could not name it."""
 
     with pytest.raises(TypeError, match="'policy'.*register_policy"):
         _train(tmp_path, Custom)
@@ -100,7 +100,7 @@ def test_what_cannot_be_recorded_is_refused_before_training(tmp_path):
 
 def test_registered_policy_round_trip(tmp_path):
     class Registered(ActorCriticPolicy):
-        pass
+        """An SB3 policy subclass registered under a name for this test."""
 
     bl.register_policy("RegisteredForTest", Registered)
     try:
