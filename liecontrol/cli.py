@@ -46,6 +46,7 @@ def build_parser(load: bool = False) -> argparse.ArgumentParser:
         prog="liecontrol",
         description="Lie groups, differentiable controllers and robot learning in PyTorch.",
     )
+    parser.add_argument("--version", action="version", version=sys.modules["liecontrol"].__version__)
     top = parser.add_subparsers(dest="command", metavar="COMMAND")
     groups: dict[str, argparse._SubParsersAction] = {}
     for path, module, help_ in _COMMANDS:
