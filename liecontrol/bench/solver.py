@@ -281,7 +281,7 @@ def _croc_pendulum(ctx: _Ctx, task, expert, x0: torch.Tensor, steps: int) -> tup
     g = torch.Generator().manual_seed(1)
     umax = task.u_max()[0]
     u_check = (2 * torch.rand(2, H, 1, generator=g, dtype=D) - 1) * umax
-    x_check = rollout(md, x0.to(D).expand(2, -1), u_check)
+    x_check = rollout(md, x0.to("cpu", D).expand(2, -1), u_check)
     mask = np.zeros(task.n, bool)
     mask[[0]] = True
     with tempfile.TemporaryDirectory() as tmp:
