@@ -53,7 +53,8 @@ import torch
 
 from liecontrol.report import positive_int, print_table, restores_threads, sync, time_ms, write_json
 
-__all__ = ["add_arguments", "run", "WORKLOADS", "Sizes", "DEFAULT_SIZES", "QUICK_SIZES"]
+__all__ = ["add_arguments", "run", "measure", "WORKLOADS", "Sizes", "DEFAULT_SIZES", "QUICK_SIZES",
+           "COOKBOOK", "cookbook_problem"]
 
 WORKLOADS = ("quadrotor_step", "pendulum_mpc_step", "pendulum_ilqr_iteration", "cartpole_swingup_batch64",
              "pendulum_swingup_batch64", "car_parking_step", "mpc_head_fwd_bwd", "cookbook_manipulator")
@@ -272,6 +273,7 @@ def _croc_pendulum(ctx: _Ctx, task, expert, x0: torch.Tensor, steps: int) -> tup
     """crocoddyl's BoxFDDP closed loop on the same problem (``_crocoddyl_mpc_anchor.py``), after its model
     check against our model (the ``bench ilqr`` tolerances)."""
     from controllers.dynamics import rollout
+    from learning.policies import angle_dims
     from liecontrol.bench.ilqr import CROC_COST_TOL, CROC_ROLLOUT_TOL, CROC_STEP_TOL
 
     D, H, md = torch.float64, expert.horizon, task.system
@@ -283,7 +285,7 @@ def _croc_pendulum(ctx: _Ctx, task, expert, x0: torch.Tensor, steps: int) -> tup
     u_check = (2 * torch.rand(2, H, 1, generator=g, dtype=D) - 1) * umax
     x_check = rollout(md, x0.to("cpu", D).expand(2, -1), u_check)
     mask = np.zeros(task.n, bool)
-    mask[[0]] = True
+    mask[angle_dims(task)] = True
     with tempfile.TemporaryDirectory() as tmp:
         f, out = Path(tmp) / "problem.npz", Path(tmp) / "out.npz"
         np.savez(f, problem=np.array("pendulum"), T=np.array(H), dt=np.array(float(md.dt)),
