@@ -21,6 +21,8 @@ _COMMANDS: tuple[tuple[tuple[str, ...], str, str], ...] = (
     (("bench", "lqr"), "liecontrol.bench.lqr", "LQR vs pypose and mpc.pytorch"),
     (("bench", "ilqr"), "liecontrol.bench.ilqr", "iLQR swing-up vs mpc.pytorch box-DDP"),
     (("bench", "envs"), "liecontrol.bench.envs", "vector-env steps/s vs gymnasium SyncVectorEnv and EnvPool"),
+    (("bench", "solver"), "liecontrol.bench.solver",
+     "the solver workloads of issue 23 (MPC steps, iLQR, MPC head) vs crocoddyl, CasADi, numpy, SB3's MLP"),
     (("compare",), "liecontrol.compare", "MPC expert vs PPO/SAC trained within a step budget, same seeds"),
     (("learn",), "liecontrol.learn",
      "learning with the MPC: MPC-headed PPO vs PPO (equal steps, equal time); behaviour cloning"),
