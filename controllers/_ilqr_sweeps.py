@@ -261,10 +261,10 @@ def _run_flat(name: str, key: str, fn, args: tuple, layout: tuple, bs: torch.Siz
     flat, dims = [], []
     for x, (lead, trail) in zip(args, layout):
         have = x.dim() - lead - trail
-        x = x.reshape(*x.shape[:lead], *([1] * (nb - have)), *x.shape[lead:])
-        x = x.expand(*x.shape[:lead], *bs, *x.shape[lead + nb:])
-        flat.append(x.reshape(*x.shape[:lead], Bf, *x.shape[lead + nb:]).contiguous())
+        x = x.reshape((*x.shape[:lead], *([1] * (nb - have)), *x.shape[lead:]))
+        x = x.expand((*x.shape[:lead], *bs, *x.shape[lead + nb:]))
+        flat.append(x.reshape((*x.shape[:lead], Bf, *x.shape[lead + nb:])).contiguous())
         dims.append(lead)
     prog = _compiled.build(name, key, fn, tuple(flat), dims)
     outs = prog(*flat)
-    return tuple(o.reshape(*o.shape[:d], *bs, *o.shape[d + 1:]) for o, d in zip(outs, out_lead))
+    return tuple(o.reshape((*o.shape[:d], *bs, *o.shape[d + 1:])) for o, d in zip(outs, out_lead))

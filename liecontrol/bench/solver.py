@@ -118,6 +118,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="timed calls per figure (median; default 5, 1 for the 64 swing-ups)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (a smoke run of seconds)")
     parser.add_argument("--json", default=None, metavar="PATH", help="write the records as a JSON list")
+    parser.add_argument("--eager", action="store_true",
+                        help="run iLQR's time sweeps eagerly (default: compiled programs, "
+                             "ILQROptions(compile=True); the first run builds them, a few seconds each, "
+                             "cached on disk)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,6 +131,13 @@ class _Ctx:
     device: torch.device
     threads: int
     repeats: int | None
+    compile: bool = True
+
+    def options(self, **kw):
+        """iLQR options of our side: its time sweeps compiled unless ``--eager``."""
+        from controllers.ilqr import ILQROptions
+
+        return ILQROptions(compile=self.compile, **kw)
 
     def reps(self, default: int | None = None) -> int:
         return self.repeats if self.repeats is not None else (default or self.sizes.repeats)
@@ -143,7 +154,8 @@ def _record(ctx: _Ctx, workload: str, case: str, batch: int, ours_ms: float, anc
         anchor = anchor_ms = None
     rec = {"workload": workload, "batch": batch, "dtype": str(dtype or ctx.dtype).removeprefix("torch."),
            "device": str(ctx.device), "ours_ms": ours_ms, "anchor": anchor, "anchor_ms": anchor_ms,
-           "ratio": anchor_ms / ours_ms if anchor_ms is not None and ours_ms else None, "case": case}
+           "ratio": anchor_ms / ours_ms if anchor_ms is not None and ours_ms else None, "case": case,
+           "compiled": ctx.compile}
     if note:
         rec["anchor_note"] = note
     return {**rec, **extra}
@@ -319,7 +331,7 @@ def _pendulum_expert(ctx: _Ctx) -> list[dict]:
     from learning.policies import MPCExpert
 
     task = make_task("PendulumSwingUp")
-    expert = MPCExpert(task, ctx.sizes.pend_horizon)
+    expert = MPCExpert(task, ctx.sizes.pend_horizon, options=ctx.options(max_iter=20))
     H, S = expert.horizon, ctx.sizes.pend_steps
     # hanging 0.04π off the bottom, at rest: a genuine swing-up
     x0 = task.initial_state(torch.tensor([[0.02, 0.5]], dtype=torch.float64)).to(ctx.device, ctx.dtype)
@@ -351,7 +363,7 @@ def _car(ctx: _Ctx) -> list[dict]:
     from learning.policies import MPCExpert
 
     task = make_task("CarParking")
-    expert = MPCExpert(task, ctx.sizes.car_horizon)
+    expert = MPCExpert(task, ctx.sizes.car_horizon, options=ctx.options(max_iter=20))
     B = ctx.sizes.car_batch
     g = torch.Generator().manual_seed(0)
     noise = torch.rand(B, task.n_noise, generator=g, dtype=torch.float64)
@@ -368,14 +380,14 @@ def _car(ctx: _Ctx) -> list[dict]:
 def _swingups(ctx: _Ctx, name: str) -> list[dict]:
     """``bench ilqr``'s crocoddyl comparison (``_croc_compare``: model check, ours batched, crocoddyl one by
     one, float64 CPU); ours is re-timed here when another dtype or device was asked for."""
-    from controllers.ilqr import ILQROptions, ilqr
+    from controllers.ilqr import ilqr
     from liecontrol.bench import ilqr as bi
 
     s = ctx.sizes
     B, T = s.swing_batch, s.swing_horizon
     args = argparse.Namespace(threads=ctx.threads, anchor_repeats=1, croc_python=None, seed=0,
                               max_iter=s.swing_max_iter, repeats=ctx.reps(s.swing_repeats))
-    opts = ILQROptions(max_iter=s.swing_max_iter)
+    opts = ctx.options(max_iter=s.swing_max_iter)
     x0_np = bi._x0(name, B, 0)
     variants = [(f"{name} swing-up", None)]
     if name == "pendulum":
@@ -485,9 +497,9 @@ def _cookbook(ctx: _Ctx) -> list[dict]:
     prob = cookbook_problem(ctx.dtype, ctx.device)
     out = []
     for method in ("recursive", "batch"):
-        sol = ilqr(prob, method=method, grad="none")
+        sol = ilqr(prob, method=method, grad="none", options=ctx.options())
         iters = int(sol.status.iterations)
-        ms = ctx.time(lambda method=method: ilqr(prob, method=method, grad="none"))
+        ms = ctx.time(lambda method=method: ilqr(prob, method=method, grad="none", options=ctx.options()))
         with tempfile.TemporaryDirectory() as tmp:
             f = Path(tmp) / "cookbook.npz"
             np.savez(f, **{k: np.asarray(v) for k, v in COOKBOOK.items()}, Q=np.eye(3), iterations=iters)
@@ -517,9 +529,10 @@ _RUNNERS: dict[str, Callable[[_Ctx], list[dict]]] = {
 
 
 def measure(workloads=WORKLOADS, *, sizes: Sizes = DEFAULT_SIZES, dtype: torch.dtype = torch.float64,
-            device: str = "cpu", threads: int = 1, repeats: int | None = None, log=print) -> list[dict]:
+            device: str = "cpu", threads: int = 1, repeats: int | None = None, compile: bool = True,
+            log=print) -> list[dict]:
     """The records of ``workloads`` (module docstring), in the order of :data:`WORKLOADS`."""
-    ctx = _Ctx(sizes, dtype, torch.device(device), threads, repeats)
+    ctx = _Ctx(sizes, dtype, torch.device(device), threads, repeats, compile)
     done, records = set(), []
     for w in WORKLOADS:
         fn = _RUNNERS[w]
@@ -557,6 +570,7 @@ def run(args) -> int:
     torch.set_num_threads(args.threads)
     sizes = QUICK_SIZES if args.quick else DEFAULT_SIZES
     records = measure(args.workloads, sizes=sizes, dtype=_DTYPES[args.dtype], device=args.device,
+                      compile=not args.eager,
                       threads=args.threads, repeats=args.repeats)
     _print(records)
     if args.json:

@@ -62,6 +62,13 @@ def test_limited_swingup_equals_the_eager_sweeps_at_any_batch_size(B):
     _assert_same(eager, comp)
 
 
+def test_an_unbatched_problem_equals_the_eager_sweeps():
+    p = _swingup(1)
+    eager, comp = _both(ILQRProblem(p.dynamics, p.cost, p.x0[0], p.horizon, u_lower=-2.0, u_upper=2.0))
+    assert comp.u.shape == (p.horizon, 1) and comp.status.reason.shape == ()
+    _assert_same(eager, comp)
+
+
 def test_a_bad_element_stays_its_own_in_the_compiled_sweeps():
     p = _swingup(4)
     x0 = p.x0.clone()
