@@ -43,6 +43,7 @@ bench: bench-env
 	$(BIN)/liecontrol bench lie --json out/bench_lie.json
 	$(BIN)/liecontrol bench lqr --json out/bench_lqr.json
 	$(BIN)/liecontrol bench ilqr --json out/bench_ilqr.json
+	$(BIN)/liecontrol bench solver --json out/bench_solver.json
 
 # The anchors: the `bench` extra in .venv, and mpc.pytorch, which pins numpy<2, in an environment of its
 # own (.venv-mpc), called by the benchmarks in a subprocess. With them `make test` also runs the anchor tests.
