@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import inspect
 import os
 import tempfile
 import threading
@@ -140,13 +141,19 @@ def _source_hash() -> str:
 
 def fingerprint(obj) -> str | None:
     """A text key of a system or cost whose fields are plain numbers, strings or 0-dim tensors (their values
-    are baked into a program); ``None`` when a field is anything else (a batched parameter, a tensor that
-    requires grad, an object without fields): such a solve stays on the eager path."""
+    are baked into a program), with a hash of the file that defines its class; ``None`` when a field is
+    anything else (a batched parameter, a tensor that requires grad), the object is not a dataclass, or its
+    source file cannot be read: such a solve stays on the eager path.  (Code the class calls in other
+    modules of the user's is not in the key: edit it and clear the cache, :func:`cache_dir`.)"""
     import dataclasses
 
     if not dataclasses.is_dataclass(obj):
         return None
-    parts = [type(obj).__module__ + "." + type(obj).__qualname__]
+    try:  # the program bakes in the class's code: a change to its module must rebuild
+        src = hashlib.sha256(Path(inspect.getfile(type(obj))).read_bytes()).hexdigest()[:16]
+    except (OSError, TypeError):
+        return None
+    parts = [type(obj).__module__ + "." + type(obj).__qualname__, src]
     for f in dataclasses.fields(obj):
         v = getattr(obj, f.name)
         if isinstance(v, (bool, int, float, str)) or v is None:
@@ -184,31 +191,49 @@ class _Wrap(torch.nn.Module):
         return tuple(self.fn(*args))
 
 
-_PROGRAMS: dict[tuple, Program] = {}
+_PROGRAMS: dict[tuple, Program | None] = {}
 _LOCK = threading.Lock()
 
 
 def build(name: str, key: str, fn: Callable, args: tuple[torch.Tensor, ...], batch_dims: Sequence[int | None]
-          ) -> Program:
-    """The program of ``fn(*args)`` with a dynamic batch size, built once and cached (memory and disk).
+          ) -> Program | None:
+    """The program of ``fn(*args)`` with a dynamic batch size, built once and cached (memory and disk);
+    ``None`` when it cannot be built or loaded here (no C++ compiler, an unwritable cache, an operation
+    export cannot trace): a ``RuntimeWarning`` says why, once per program, and the caller runs eagerly.
 
     ``batch_dims[i]`` is the batch dim of ``args[i]`` (``None``: no batch dim).  ``key`` must name everything
     that changes the traced program besides dtypes, devices and the shapes of non-batch dims, which are
-    added here.  Looking up a built program costs a dict access (no hashing of tensors).
+    added here.  Looking up a built program costs a dict access (no hashing of tensors).  A cached file
+    that does not load (truncated, from another build) is rebuilt once.
     """
     sig = (name, key, tuple((x.shape if d is None else x.shape[:d] + x.shape[d + 1:], x.dtype, str(x.device),
                              d) for x, d in zip(args, batch_dims)))
-    prog = _PROGRAMS.get(sig)
-    if prog is not None:
-        return prog
+    if sig in _PROGRAMS:
+        return _PROGRAMS[sig]
     with _LOCK:
         if sig not in _PROGRAMS:
-            digest = hashlib.sha256(f"{sig}|{_source_hash()}".encode()).hexdigest()[:24]
-            path = cache_dir() / f"{name}-{digest}.pt2"
+            _PROGRAMS[sig] = _build_or_load(name, sig, fn, args, batch_dims)
+    return _PROGRAMS[sig]
+
+
+def _build_or_load(name, sig, fn, args, batch_dims) -> Program | None:
+    digest = hashlib.sha256(f"{sig}|{_source_hash()}".encode()).hexdigest()[:24]
+    path = cache_dir() / f"{name}-{digest}.pt2"
+    try:
+        for attempt in range(2):
             if not path.exists():
                 _compile(fn, tuple(_example(x, d) for x, d in zip(args, batch_dims)), batch_dims, path)
-            _PROGRAMS[sig] = Program(str(path))
-    return _PROGRAMS[sig]
+            try:
+                return Program(str(path))
+            except Exception:
+                if attempt:
+                    raise
+                path.unlink(missing_ok=True)  # a file that does not load: build it again
+    except Exception as e:  # noqa: BLE001 — any failure of the toolchain means: run eagerly
+        warnings.warn(f"liecontrol: could not build the compiled program '{name}' ({type(e).__name__}: "
+                      f"{str(e).splitlines()[0] if str(e) else ''}); running it eagerly",
+                      RuntimeWarning, stacklevel=4)
+    return None
 
 
 def _example(x: torch.Tensor, d: int | None) -> torch.Tensor:

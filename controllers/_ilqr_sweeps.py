@@ -256,7 +256,7 @@ def forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi, bs, compiled_key: st
 def _run_flat(name: str, key: str, fn, args: tuple, layout: tuple, bs: torch.Size, out_lead: tuple):
     """Call the program of ``fn`` on ``args`` laid out as ``(lead dims, *B or fewer, trailing dims)``
     (``layout[i] = (lead, trail)``): the batch is expanded and flattened to one dim for the call, and restored
-    in the outputs (whose batch dim is at ``out_lead[j]``)."""
+    in the outputs (whose batch dim is at ``out_lead[j]``).  Where no program can be built, ``fn(*args)``."""
     nb, Bf = len(bs), math.prod(bs)
     flat, dims = [], []
     for x, (lead, trail) in zip(args, layout):
@@ -266,5 +266,7 @@ def _run_flat(name: str, key: str, fn, args: tuple, layout: tuple, bs: torch.Siz
         flat.append(x.reshape((*x.shape[:lead], Bf, *x.shape[lead + nb:])).contiguous())
         dims.append(lead)
     prog = _compiled.build(name, key, fn, tuple(flat), dims)
+    if prog is None:  # not buildable here (warned once): the same function, eagerly
+        return fn(*args)
     outs = prog(*flat)
     return tuple(o.reshape((*o.shape[:d], *bs, *o.shape[d + 1:])) for o, d in zip(outs, out_lead))

@@ -109,3 +109,52 @@ def test_a_built_program_is_loaded_from_disk_by_a_fresh_process(monkeypatch):
     monkeypatch.setattr(_compiled, "_compile", no_build)
     again = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
     _assert_same(ref, again, tol=0.0)
+
+
+def test_a_program_that_cannot_be_built_warns_and_runs_eagerly(monkeypatch, tmp_path):
+    monkeypatch.setenv("LIECONTROL_CACHE", str(tmp_path))
+    monkeypatch.setattr(_compiled, "_PROGRAMS", {})
+
+    def broken(*a, **k):
+        raise RuntimeError("no C++ compiler found")
+
+    monkeypatch.setattr(_compiled, "_compile", broken)
+    p = _swingup(2)
+    with pytest.warns(RuntimeWarning, match="could not build the compiled program 'ilqr_.*no C\\+\\+ compiler"):
+        comp = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
+    _assert_same(ilqr(p, grad="none", options=ILQROptions(max_iter=40)), comp, tol=0.0)
+
+
+def test_a_cached_file_that_does_not_load_is_rebuilt(monkeypatch):
+    p = _swingup(2)
+    ref = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
+    files = sorted(_compiled.cache_dir().glob("ilqr_kkt-*.pt2"))
+    assert files
+    for f in files:
+        f.write_bytes(b"not a package")
+    monkeypatch.setattr(_compiled, "_PROGRAMS", {})
+    again = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
+    _assert_same(ref, again, tol=0.0)
+    assert all(f.stat().st_size > 1000 for f in files)
+
+
+def test_the_fingerprint_follows_the_fields_and_the_source_of_the_class(tmp_path, monkeypatch):
+    import importlib
+    import sys
+
+    src = ("from dataclasses import dataclass\n@dataclass(frozen=True)\nclass Sys:\n    k: float = 1.0\n"
+           "    def step(self, x, u, t):\n        return x + {} * u\n")
+    mod = tmp_path / "fp_user_system.py"
+    mod.write_text(src.format("self.k"))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    m1 = importlib.import_module("fp_user_system")
+    a, b = _compiled.fingerprint(m1.Sys()), _compiled.fingerprint(m1.Sys(k=2.0))
+    assert a is not None and a != b
+    mod.write_text(src.format("2 * self.k"))
+    del sys.modules["fp_user_system"]
+    m2 = importlib.import_module("fp_user_system")
+    assert _compiled.fingerprint(m2.Sys()) != a  # same fields, other code: another program
+    # a batched or differentiable parameter cannot be baked into a program
+    assert _compiled.fingerprint(Pendulum(length=torch.ones(3, 1, dtype=D))) is None
+    assert _compiled.fingerprint(Pendulum(length=torch.tensor(1.0, dtype=D, requires_grad=True))) is None
+    assert _compiled.fingerprint(Pendulum(length=torch.tensor(1.5, dtype=D))) != _compiled.fingerprint(Pendulum())
