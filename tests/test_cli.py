@@ -57,7 +57,7 @@ def test_demo_reaches_its_accuracy(tmp_path, capsys):
 
 def test_bench_lie_writes_records(tmp_path):
     path = tmp_path / "lie.json"
-    assert cli.main(["bench", "lie", "--batch", "8", "--dtype", "float64", "--ops", "exp", "log",
+    assert cli.main(["bench", "lie", "--batches", "8", "--dtypes", "float64", "--ops", "exp", "log",
                      "--repeats", "1", "--no-compile", "--json", str(path)]) == 0
     recs = json.loads(path.read_text())
     keys = {"group", "op", "dtype", "batch", "ours_ms", "anchor", "anchor_ms", "speedup", "roundtrip_err"}
@@ -75,7 +75,7 @@ def test_bench_lie_log_rows_compare_like_with_like(tmp_path):
     """log_quat: a quaternion on every side (so3 only); log_mat: a matrix on every side, pypose's time
     including its own matrix -> quaternion conversion; every record says what each side was given."""
     path = tmp_path / "lie.json"
-    assert cli.main(["bench", "lie", "--batch", "16", "--dtype", "float32", "--ops", "log", "log_quat",
+    assert cli.main(["bench", "lie", "--batches", "16", "--dtypes", "float32", "--ops", "log", "log_quat",
                      "log_mat", "--repeats", "1", "--no-compile", "--json", str(path)]) == 0
     recs = json.loads(path.read_text())
     ops = {(r["group"], r["op"]) for r in recs}
