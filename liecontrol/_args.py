@@ -14,7 +14,7 @@ import os
 from pathlib import Path
 
 __all__ = ["HelpFormatter", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float",
-           "out_dir", "out_file", "existing_dir", "task_name", "KNOWN_VERSION"]
+           "out_dir", "out_file", "existing_file", "existing_dir", "task_name", "KNOWN_VERSION"]
 
 #: the only registered version of the ``liecontrol/<Name>-vN`` environment ids
 KNOWN_VERSION = 0
@@ -108,6 +108,13 @@ def out_file(s: str) -> str:
     if p.is_dir():
         raise argparse.ArgumentTypeError(f"{s} is a folder, expected a file path")
     _writable_parent(p)
+    return s
+
+
+def existing_file(s: str) -> str:
+    """An existing file (an interpreter, for example)."""
+    if not Path(s).is_file():
+        raise argparse.ArgumentTypeError(f"{s} is not a file" if Path(s).exists() else f"{s} does not exist")
     return s
 
 

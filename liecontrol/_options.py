@@ -24,6 +24,7 @@ import re
 
 from liecontrol._args import (
     existing_dir,
+    existing_file,
     nonnegative_float,
     nonnegative_int,
     out_dir,
@@ -72,6 +73,24 @@ def _common(p: argparse.ArgumentParser, *, out: str | None = None, json: bool = 
         p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
     if quiet:
         p.add_argument("--quiet", action="store_true", help="no progress bars or progress lines on stderr")
+
+
+def _check_devices(args: argparse.Namespace) -> str | None:
+    """``--devices``: torch devices this torch can use (torch is imported here, after ``--help``)."""
+    if not args.devices:
+        return None
+    import torch
+
+    for d in args.devices:
+        try:
+            dev = torch.device(d)
+        except RuntimeError:
+            return f"argument --devices: {d!r} is not a torch device (cpu, cuda, cuda:1, ...)"
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            return f"argument --devices: {d} requested, but this torch has no CUDA device"
+        if dev.type not in ("cpu", "cuda"):
+            return f"argument --devices: expected cpu or cuda devices, got {d}"
+    return None
 
 
 # ----------------------------------------------------------------------------------------------- demo
@@ -132,6 +151,7 @@ def bench_lie(p: argparse.ArgumentParser) -> None:
     _common(p, threads=None)
     p.add_argument("--threads", type=positive_int, default=None, metavar="N",
                    help="torch intra-op threads (default: torch's own)")
+    p.set_defaults(_check=_check_devices)
 
 
 def bench_lqr(p: argparse.ArgumentParser) -> None:
@@ -147,7 +167,7 @@ def bench_lqr(p: argparse.ArgumentParser) -> None:
     p.add_argument("--anchors", default="pypose,mpc,plain", type=_anchor_list,
                    help="comma-separated subset of: pypose, mpc (mpc.pytorch), plain (a textbook Riccati "
                         "recursion in plain torch)")
-    p.add_argument("--mpc-python", default=None, metavar="PATH",
+    p.add_argument("--mpc-python", type=existing_file, default=None, metavar="PATH",
                    help="python of the mpc.pytorch environment (default: <repo>/.venv-mpc/bin/python; made "
                         "by "
                         "'make bench-env')")
@@ -180,9 +200,9 @@ def bench_ilqr(p: argparse.ArgumentParser) -> None:
                    help="batch of the gradient check (float64)")
     p.add_argument("--seed", type=nonnegative_int, default=0, metavar="S", help="seed of the initial states")
     p.add_argument("--no-anchor", action="store_true", help="skip every anchor")
-    p.add_argument("--anchor-python", default=None, metavar="PATH",
+    p.add_argument("--anchor-python", type=existing_file, default=None, metavar="PATH",
                    help="python of the mpc.pytorch environment (default: <repo>/.venv-mpc/bin/python)")
-    p.add_argument("--croc-python", default=None, metavar="PATH",
+    p.add_argument("--croc-python", type=existing_file, default=None, metavar="PATH",
                    help="python with crocoddyl (default: this interpreter; the bench extra installs it)")
     p.add_argument("--no-croc", action="store_true", help="skip the crocoddyl anchor")
     _common(p)
@@ -207,6 +227,7 @@ def bench_envs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-compile", action="store_true",
                    help="skip the rows of our env with torch.compile and AOTInductor")
     _common(p)
+    p.set_defaults(_check=_check_devices)
 
 
 # --------------------------------------------------------------------------------------- compare, learn

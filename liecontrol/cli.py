@@ -45,6 +45,11 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _load(module: str):
+    """The command's module (imported only once the command line is known to be good)."""
+    return importlib.import_module(module)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     parser = build_parser()
@@ -64,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     command, module = args._parser.prog, args._module
     for k in ("_module", "_parser", "_group", "_check"):
         args.__dict__.pop(k, None)
-    mod = importlib.import_module(module)
+    mod = _load(module)
     try:
         return int(mod.run(args) or 0)
     except KeyboardInterrupt:
