@@ -105,14 +105,14 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
                      params=dict(rec["mpc_ppo_params"]), policy=MPCActorCriticPolicy, policy_kwargs=pk,
                      **kw("mpc_ppo"))
         ev = evaluate(r.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=False, timing_batch1=True)
+                      progress=not quiet, timing_batch1=True)
         rec["mpc_ppo"].append(_record(r, ev))
         last["mpc_ppo"] = ev
         say(f"{task.name} seed {s}: plain PPO, {steps} steps")
         p = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes,
                      **kw("ppo_equal_steps"))
         ev = evaluate(p.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=False, timing_batch1=True)
+                      progress=not quiet, timing_batch1=True)
         rec["ppo_equal_steps"].append(_record(p, ev))
         last["ppo"] = ev
         budget_s = r.train_time_s
@@ -121,7 +121,7 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
                      max_train_s=budget_s, **kw("ppo_equal_time"))
         progress.close()
         ev = evaluate(q.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=False, timing_batch1=False)
+                      progress=not quiet, timing_batch1=False)
         rec["ppo_equal_time"].append(_record(q, ev))
     a = float(np.median(last["mpc_ppo"].step_ms_batch1))
     b = float(np.median(last["ppo"].step_ms_batch1))

@@ -171,3 +171,29 @@ def test_bad_jobs_is_refused(tmp_path):
     with pytest.raises(ValueError, match="'jobs'"):
         from liecontrol.compare import compare
         compare(TASK, jobs=0, out=tmp_path, mpc=False)
+
+
+def test_learning_curve_points_before_training_after_each_multiple_and_at_the_end(trained):
+    """Each saved curve: a point before training (0 steps), at the first rollout boundary at or past each
+    multiple of --eval-every (the policy then is the one updated on exactly that many steps), and after
+    the last step."""
+    every = int(TINY[TINY.index("--eval-every") + 1])
+    for algo in ("ppo", "sac"):
+        meta = bl.read_agent_meta(trained / TASK / "agents" / algo / "seed0" / "policy.pt")
+        steps, last, p = meta["curve"]["steps"], meta["num_timesteps"], meta["params"]
+        rollout = p.get("n_envs", 1) * (p["n_steps"] if algo == "ppo" else p.get("train_freq", 1))
+        assert steps[0] == 0 and steps[-1] == last and steps == sorted(set(steps))
+        for m in range(every, last, every):
+            assert any(m <= s < m + rollout for s in steps), (algo, m, steps)
+
+
+def test_workers_report_their_progress_to_the_command(tmp_path, capsys):
+    """With worker processes (--jobs 2), each agent's evaluation lines reach the command (a queue) and
+    move its progress bar to the budget."""
+    args = ["compare", TASK, "--algos", "sac", "--seeds", "0", "1", "--no-mpc", "--jobs", "2", "--out",
+            str(tmp_path), *[a for a in TINY if a != "--quiet"]]
+    assert cli.main(args) == 0
+    err = capsys.readouterr().err
+    for s in (0, 1):
+        assert f"{TASK} sac seed {s}: 128 steps, eval return" in err  # a line logged in a worker
+        assert f"{TASK} sac seed {s}: 100%" in err and "256/256" in err  # its bar, full

@@ -83,3 +83,24 @@ def test_mpc_head_ppo_settings_cap_the_learning_rate_and_drop_gsde():
     assert "use_sde" in plain and "use_sde" not in head and "sde_sample_freq" not in head
     assert {k: v for k, v in head.items() if k != "learning_rate"} == \
         {k: v for k, v in plain.items() if k not in ("learning_rate", "use_sde", "sde_sample_freq")}
+
+
+def test_tensorboard_flag_reaches_training(tmp_path, monkeypatch):
+    """``learn mpc-ppo --tensorboard``: every run is trained with TensorBoard on, beside its saved agent in
+    OUT/agents/RUN/seedS (checked on the arguments train receives: tensorboard is not a dependency)."""
+    import liecontrol.learn as learn
+
+    seen = []
+
+    def fake_train(*a, **kw):
+        seen.append(kw)
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(bl, "train", fake_train)
+    with pytest.raises(RuntimeError, match="stop"):
+        learn.mpc_ppo(TASK, steps=64, out=tmp_path, tensorboard=True)
+    assert seen[0]["tensorboard"] is True and seen[0]["out_dir"] == tmp_path / "agents" / "mpc_ppo" / "seed0"
+    seen.clear()
+    with pytest.raises(RuntimeError, match="stop"):
+        learn.mpc_ppo(TASK, steps=64, out=tmp_path)
+    assert seen[0]["tensorboard"] is False and "out_dir" not in seen[0]
