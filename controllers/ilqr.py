@@ -58,14 +58,17 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from controllers import _compiled
+from controllers._ilqr_sweeps import backward_pass, forward_candidates, kkt_parts
 from controllers._validate import broadcast_batch, check_limit, enum_arg, time_major
-from controllers.boxqp import box_qp, masked_hessian
+from controllers.boxqp import box_qp
 from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, cost_derivatives, stand_in_cost
 from controllers.dynamics import (
     LinearDynamics,
     System,
     check_system,
     has_analytic_jacobian,
+    is_time_invariant,
     rollout,
     trajectory_jacobians,
 )
@@ -127,6 +130,13 @@ class ILQROptions:
             status is ``NOT_A_MINIMUM``.  Off by default: ``CONVERGED`` then certifies a KKT point (first
             order), which the Gauss-Newton model cannot tell from a saddle (a unicycle from rest with
             ``R = 1e-12`` stops on one, J = 3.75 against 1.65).
+        compile: run the time sweeps of each iteration (the backward Riccati pass, the costates of the
+            certificate, the rollouts of the line search) as compiled programs
+            (:mod:`controllers._compiled`): built once per problem structure (a few seconds, then cached on
+            disk across processes), any batch size.  Same numbers as the eager path up to round-off.  Sweeps
+            the compiler cannot take run eagerly: several limited controls (the backward pass's inner box
+            QP), time-varying dynamics, or dynamics whose parameters are batched tensors or require grad
+            (the rollouts); ``grad="unrolled"`` runs eagerly.
     """
 
     max_iter: int = 100
@@ -140,6 +150,7 @@ class ILQROptions:
     line_search_steps: int = 10
     armijo: float = 1e-4
     second_order: bool = False
+    compile: bool = False
 
 
 # --------------------------------------------------------------------------------------------------
@@ -309,141 +320,6 @@ class ILQRSolution:
 # --------------------------------------------------------------------------------------------------
 
 
-@dataclass
-class _Backward:
-    K: Tensor  # (T, *B, m, n)
-    k: Tensor  # (T, *B, m)
-    free: Tensor  # (T, *B, m)
-    ok: Tensor  # (*B,)
-    dV1: Tensor  # (*B,)  Σ kᵀ Q_u
-    dV2: Tensor  # (*B,)  Σ ½ kᵀ Q_uu k
-    curv: Tensor  # (*B,)  max_t max_i |(Q_uu,t)_ii| (unregularized): the curvature of the certificate
-
-
-def _factor(H: Tensor) -> tuple[Tensor, Tensor]:
-    """Cholesky factor of SPD ``H (*B, m, m)`` and an ``ok (*B,)`` mask; failed factors are identity.
-
-    One variable is a square root (a batched LAPACK call per time step costs more than the whole step).
-    """
-    m = H.shape[-1]
-    if m == 1:
-        ok = H[..., 0, 0] > 0
-        one = torch.ones((), dtype=H.dtype, device=H.device)
-        return torch.sqrt(torch.where(ok[..., None, None], H, one)), ok
-    L, info = torch.linalg.cholesky_ex(H)
-    ok = info == 0
-    return torch.where(ok[..., None, None], L, torch.eye(m, dtype=H.dtype, device=H.device)), ok
-
-
-def _solve_factor(L: Tensor, b: Tensor) -> Tensor:
-    """``H⁻¹ b`` from the factor of :func:`_factor`."""
-    if L.shape[-1] == 1:
-        return b / (L * L)
-    return torch.cholesky_solve(b, L)
-
-
-def _backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs) -> _Backward:
-    """Riccati recursion on the local model (time-major inputs); ``lo/hi`` are bounds on ``Δu``.
-
-    Homogeneous form (the affine terms ride in an extra coordinate, as in seed Eq. 76-78): with
-    ``z̃ = [δx; δu; 1]``, the stage matrix ``H̃_t = [[H_xx, H_xu, g_x], [H_ux, H_uu, g_u], [g_xᵀ, g_uᵀ, 0]]``,
-    ``F̃_t = [[A_t, B_t, 0], [0, 0, 1]]`` and the value ``½ x̃ᵀ Ṽ x̃`` each step is ``Q̃ = H̃_t + F̃_tᵀ Ṽ F̃_t``
-    (Eq. 91); the feedforward solves the box QP on the regularized ``Q_uu + μI`` (Eq. 92 when no limit is
-    active), the rows of ``K`` of clamped controls are zero, and with ``M̃ = [[I, 0], [K, k], [0, 1]]``
-    the value update is ``Ṽ = M̃ᵀ Q̃ M̃`` (Eq. 93 for the clamped policy).
-    """
-    T, n, m = A.shape[0], A.shape[-1], B.shape[-1]
-    dtype, device = A.dtype, A.device
-    kw = dict(dtype=dtype, device=device)
-    # augmented dynamics and stage matrices for all steps at once
-    lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
-    Ft = torch.cat([A.expand(*lead, n, n), B.expand(*lead, n, m), torch.zeros(*lead, n, 1, **kw)], -1)
-    last = torch.zeros(n + m + 1, **kw)
-    last[-1] = 1.0
-    F = torch.cat([Ft, last.expand(*lead, 1, n + m + 1)], -2)  # (T, *b, n+1, n+m+1)
-    full = (T, *bs)
-    Hxx_t = Hxx[:T].expand(*full, n, n)
-    Hxu = torch.zeros(*full, n, m, **kw) if Hux is None else Hux.mT.expand(*full, n, m)
-    gxt, gut = gx[:T].expand(*full, n), gu.expand(*full, m)
-    H = torch.cat([
-        torch.cat([Hxx_t, Hxu, gxt.unsqueeze(-1)], -1),
-        torch.cat([Hxu.mT, Huu.expand(*full, m, m), gut.unsqueeze(-1)], -1),
-        torch.cat([gxt.unsqueeze(-2), gut.unsqueeze(-2), torch.zeros(*full, 1, 1, **kw)], -1),
-    ], -2)
-    gT = gx[T].expand(*bs, n)
-    V = torch.cat([torch.cat([Hxx[T].expand(*bs, n, n), gT.unsqueeze(-1)], -1),
-                   torch.cat([gT.unsqueeze(-2), torch.zeros(*bs, 1, 1, **kw)], -1)], -2)
-    top = torch.cat([torch.eye(n, **kw), torch.zeros(n, 1, **kw)], -1).expand(*bs, n, n + 1)
-    bot = torch.cat([torch.zeros(1, n, **kw), torch.ones(1, 1, **kw)], -1).expand(*bs, 1, n + 1)
-    eye_m = torch.eye(m, **kw)
-    mu_I = mu[..., None, None] * eye_m
-    u_sl = slice(n, n + m)
-    Ks, ks, frees, goods, Qus, Quus = [None] * T, [None] * T, [None] * T, [], [None] * T, [None] * T
-    Hs, Fs = H.unbind(0), F.unbind(0)
-    scalar = m == 1
-    if scalar and lo is not None:
-        los, his = lo[..., 0].unbind(0), hi[..., 0].unbind(0)
-    for t in range(T - 1, -1, -1):
-        Fk = Fs[t]
-        Q = Hs[t] + Fk.mT @ (V @ Fk)
-        if scalar:
-            # one control: the box QP is a clip and the factorization a division
-            quu, qu, qux = Q[..., n, n], Q[..., n, -1], Q[..., n, :n]
-            # (h ≤ 0 only harms its own element, which the check after the loop then flags)
-            h = quu + mu
-            good = h
-            kraw = -qu / h
-            if lo is None:
-                k = kraw
-                free = torch.ones_like(kraw, dtype=torch.bool)
-                K = qux * (-1.0 / h).unsqueeze(-1)
-            else:
-                k = torch.clamp(kraw, los[t], his[t])
-                free = (kraw >= los[t]) & (kraw <= his[t])
-                K = qux * (-free.to(dtype) / h).unsqueeze(-1)
-            row = torch.cat([K, k.unsqueeze(-1)], -1).unsqueeze(-2)
-            Quu, Qu = quu, qu
-        else:
-            Quu, Qu, Qux = Q[..., u_sl, u_sl], Q[..., u_sl, -1], Q[..., u_sl, :n]
-            Qreg = Quu + mu_I
-            if lo is None:
-                L, good = _factor(Qreg)
-                k = -_solve_factor(L, Qu.unsqueeze(-1)).squeeze(-1)
-                K = -_solve_factor(L, Qux)
-                free = torch.ones(*bs, m, dtype=torch.bool, device=device)
-            else:
-                res = box_qp(Qreg, Qu, lo[t], hi[t], x0=None if k_warm is None else k_warm[t], check=False)
-                free = res.free
-                # an uncertified inner QP (no descent, iteration cap) is a failed step: μ grows
-                good = res.converged
-                L, okL = _factor(masked_hessian(Qreg, free))
-                good = good & okL
-                k = torch.where(good.unsqueeze(-1), res.x, torch.zeros((), **kw))
-                K = -_solve_factor(L, free.to(dtype).unsqueeze(-1) * Qux)
-            row = torch.cat([K, k.unsqueeze(-1)], -1)
-        M = torch.cat([top, row, bot], -2)  # (*B, n+m+1, n+1)
-        V = M.mT @ Q @ M
-        if t % 8 == 0:  # M̃ᵀQ̃M̃ is symmetric up to round-off; re-symmetrize now and then
-            V = 0.5 * (V + V.mT)
-        Ks[t], ks[t], frees[t], Qus[t], Quus[t] = K, k, free, Qu, Quu
-        goods.append(good)
-    if scalar:  # per-step values were kept without their singleton control dim
-        ks_ = torch.stack(ks).unsqueeze(-1)
-        Ks_, frees_ = torch.stack(Ks).unsqueeze(-2), torch.stack(frees).unsqueeze(-1)
-        dV1 = (ks_[..., 0] * torch.stack(Qus)).sum(0)
-        dV2 = 0.5 * (ks_[..., 0] ** 2 * torch.stack(Quus)).sum(0)
-        curv = torch.stack(Quus).abs().amax(0)
-    else:
-        ks_, Ks_, frees_ = torch.stack(ks), torch.stack(Ks), torch.stack(frees)
-        dV1 = (ks_ * torch.stack(Qus)).sum((0, -1))
-        dV2 = 0.5 * (ks_ * (torch.stack(Quus) @ ks_.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
-        curv = torch.stack(Quus).diagonal(dim1=-2, dim2=-1).abs().amax((0, -1))
-    ok = torch.stack(goods).gt(0).all(0) if scalar else torch.stack(goods).all(0)
-    if scalar:
-        ok = ok & torch.isfinite(ks_).all(0).squeeze(-1)
-    return _Backward(Ks_, ks_, frees_, ok, dV1, dV2, curv)
-
-
 # --------------------------------------------------------------------------------------------------
 # batch formulation (Algorithm 4)
 # --------------------------------------------------------------------------------------------------
@@ -506,36 +382,6 @@ def _clip(u: Tensor, lo: Tensor | None, hi: Tensor | None) -> Tensor:
     return torch.minimum(torch.maximum(u, lo), hi)
 
 
-def _forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi):
-    """Roll out every step size at once: ``u_t = clip(û_t + α k_t + K_t (x_t - x̂_t))`` (Eq. 101).
-
-    ``alphas (S,)``; returns ``x (S, *B, T+1, n)``, ``u (S, *B, T, m)``.  ``K=None``: open loop (Eq. 100).
-    """
-    S, T = alphas.shape[0], u.shape[-2]
-    a = alphas.view(S, *([1] * u.dim()))
-    ff = u if K is None else u - (K.movedim(0, -3) @ x[..., :T, :].unsqueeze(-1)).squeeze(-1)
-    # (T, S, *B, m): û_t - K_t x̂_t + α k_t, so that u_t = that + K_t x_t
-    base = (ff.unsqueeze(0) + a * k.movedim(0, -2)).movedim(-2, 0).unbind(0)
-    lo_tm = None if lo is None else lo.movedim(-2, 0).unbind(0)
-    hi_tm = None if hi is None else hi.movedim(-2, 0).unbind(0)
-    Kt = None if K is None else (K[..., 0, :].unbind(0) if K.shape[-2] == 1 else K.unbind(0))
-    xt = x0.expand(S, *x0.shape)
-    xs, us = [xt], []
-    for t in range(T):
-        ut = base[t]
-        if Kt is not None:
-            if K.shape[-2] == 1:
-                ut = ut + (Kt[t] * xt).sum(-1, keepdim=True)
-            else:
-                ut = ut + (Kt[t] @ xt.unsqueeze(-1)).squeeze(-1)
-        if lo_tm is not None:
-            ut = torch.clamp(ut, lo_tm[t], hi_tm[t])
-        us.append(ut)
-        xt = dyn.step(xt, ut, t)
-        xs.append(xt)
-    return torch.stack(xs, -2), torch.stack(us, -2)
-
-
 def _pick(v: Tensor, idx: Tensor) -> Tensor:
     """``v (S, *B, ...)``, ``idx (*B,)`` -> ``v[idx[b], b, ...]``."""
     extra = v.dim() - 1 - idx.dim()
@@ -554,28 +400,6 @@ def _defaults(opts: ILQROptions, dtype: torch.dtype) -> tuple[float, float, floa
     tol_cost = opts.tol_cost if opts.tol_cost is not None else (1e-6 if single else 1e-12)
     tol_kkt = opts.tol_kkt if opts.tol_kkt is not None else (1e-3 if single else 1e-6)
     return tol, tol_cost, tol_kkt
-
-
-def _kkt_parts(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: Tensor | None,
-               hi: Tensor | None) -> tuple[Tensor, Tensor]:
-    """``(max |pg|, max of the gradient's terms)`` per element ``(*B,)``, time-major inputs.
-
-    ``∇_{u_t} J = ∂l/∂u_t + B_tᵀ λ_{t+1}`` with the costates ``λ_T = ∂l/∂x_T``,
-    ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}``; ``pg = u − clip(u − ∇_u J, lo, hi)`` (zero exactly at a KKT point of
-    the box-constrained problem) and the terms ``|∂l/∂u_t| + |B_tᵀ λ_{t+1}|`` that cancel in it at a free
-    optimum.  A non-finite element gives NaN (never certified).
-    """
-    T = u.shape[0]
-    lam = gx[T]
-    grads, scales = [None] * T, [None] * T
-    for t in range(T - 1, -1, -1):
-        Btl = (B[t].mT @ lam.unsqueeze(-1)).squeeze(-1)
-        grads[t] = gu[t] + Btl
-        scales[t] = gu[t].abs() + Btl.abs()
-        lam = gx[t] + (A[t].mT @ lam.unsqueeze(-1)).squeeze(-1)
-    g = torch.stack(grads)
-    pg = g if lo is None else u - torch.minimum(torch.maximum(u - g, lo), hi)
-    return pg.abs().amax(dim=(0, -1)), torch.stack(scales).amax(dim=(0, -1))
 
 
 def _kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor) -> Tensor:
@@ -730,6 +554,9 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     hi_tm = None if hi is None else hi.movedim(-2, 0)
     alphas = 0.5 ** torch.arange(opts.line_search_steps, **kw)
     eps = torch.finfo(dtype).eps
+    # compiled sweeps (ILQROptions.compile): never under a graph (grad="unrolled" differentiates the loop)
+    cc = bool(opts.compile) and not torch.is_grad_enabled()
+    dyn_key = _compiled.fingerprint(dyn) if cc and is_time_invariant(dyn) else None
 
     x = rollout(dyn, x0, u)
     J = cost.evaluate(x, u).expand(bs)
@@ -769,7 +596,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         umax = u.abs().flatten(-2).amax(-1)
         # the certificate at the current point decides how an element that stops here ends; before the
         # backward pass it is judged on the gradient's terms alone (stricter: no curvature yet)
-        pg, terms = _kkt_parts(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm)
+        pg, terms = kkt_parts(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm, bs, cc)
         # the last accepted step barely lowered the cost: done if certified here; otherwise keep taking
         # steps (a decrease below tol_cost·|J| can still leave a gradient well above tol_kkt on a flat
         # valley; Newton steps remove it) until the step itself is negligible
@@ -782,7 +609,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         dhi = None if hi is None else hi_tm - u_tm
         while True:
             if method is ILQRMethod.RECURSIVE:
-                bw = _backward_pass(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi, k_warm, bs)
+                bw = backward_pass(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi, k_warm, bs, cc)
                 K, k, ok, dV1, dV2 = bw.K, bw.k, bw.ok, bw.dV1, bw.dV2
             else:
                 k, ok, dV1, dV2 = _batch_step(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi,
@@ -811,7 +638,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         active = active & ~small
         if not bool(active.any()):
             break
-        xc, uc = _forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi)
+        xc, uc = forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi, bs, dyn_key)
         Jc = cost.evaluate(xc, uc).expand(alphas.shape[0], *bs)
         a = alphas.view(-1, *([1] * len(bs)))
         expected = -(a * dV1 + a * a * dV2)
@@ -854,9 +681,9 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     u_tm = u.movedim(-2, 0)
     dlo = None if lo is None else lo_tm - u_tm
     dhi = None if hi is None else hi_tm - u_tm
-    bw = _backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
-                        time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs)
-    pg, terms = _kkt_parts(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm)
+    bw = backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
+                       time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs, cc)
+    pg, terms = kkt_parts(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm, bs, cc)
     kkt = _kkt_relative(pg, terms, bw.curv, u.abs().flatten(-2).amax(-1)).expand(bs)
     certified = kkt <= tol_kkt
     iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (

@@ -213,8 +213,9 @@ class EvalResult:
         return "\n".join(out)
 
     def plot(self, path) -> None:
-        """A PNG: histogram of the returns and the task error against time (mean ± std over the episodes
-        still running).  Uses matplotlib's Agg canvas (no global backend change)."""
+        """A PNG: histogram of the returns and the task error against time (median and the 10-90 %
+        band over the episodes still running: quantiles stay inside the data, so the band of an error
+        never dips below 0).  Uses matplotlib's Agg canvas (no global backend change)."""
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
@@ -225,21 +226,30 @@ class EvalResult:
         ax1.hist(r, bins=max(5, min(40, r.size // 2 or 1)), color="tab:blue")
         ax1.set_xlabel("return")
         ax1.set_ylabel("episodes")
-        ax1.set_title(f"{self.meta.get('task')}: success {_fmt(float(self.success.mean()))}")
-        c = self.error_curve
-        n = np.isfinite(c).sum(0)
-        ok = n > 0
-        with np.errstate(invalid="ignore"):
-            mean = np.where(ok, np.nansum(c, 0) / np.maximum(n, 1), np.nan)
-            std = np.sqrt(np.where(ok, np.nansum((c - mean) ** 2, 0) / np.maximum(n, 1), np.nan))
-        t = np.arange(c.shape[1]) * float(self.meta.get("dt", 1.0))
-        ax2.plot(t, mean, color="tab:red", label="mean")
-        ax2.fill_between(t, mean - std, mean + std, color="tab:red", alpha=0.25, label="± std")
+        ax1.set_title(f"{self.meta.get('task')} / {self.meta.get('policy')}: success "
+                      f"{100 * float(self.success.mean()):.0f} % of {self.episodes} episodes")
+        median, lo, hi = error_band(self.error_curve)
+        t = np.arange(self.error_curve.shape[1]) * float(self.meta.get("dt", 1.0))
+        ax2.plot(t, median, color="tab:red", label="median")
+        ax2.fill_between(t, lo, hi, color="tab:red", alpha=0.25, label="10-90 % of episodes")
+        ax2.set_ylim(bottom=0)
         ax2.set_xlabel("time [s]" if "dt" in self.meta else "step")
-        ax2.set_ylabel("task error")
+        unit = self.meta.get("error_unit")
+        ax2.set_ylabel(f"task error [{unit}]" if unit else "task error (the task's unit)")
         ax2.legend()
         fig.tight_layout()
         fig.savefig(path, format="png", dpi=100)
+
+
+def error_band(curves: np.ndarray, lo: float = 10, hi: float = 90):
+    """``(median, low, high)`` over the episodes (rows) of ``curves (E, T)``, ignoring NaN (ended
+    episodes); a column with no finite value gives NaN, without a warning."""
+    c = np.asarray(curves, dtype=float)
+    ok = np.isfinite(c).any(0)
+    q = np.full((3, c.shape[1]), np.nan)
+    if ok.any():
+        q[:, ok] = np.nanpercentile(c[:, ok], [50, lo, hi], axis=0)
+    return q[0], q[1], q[2]
 
 
 def _fmt(v) -> str:

@@ -35,7 +35,7 @@ from liecontrol._args import (
 )
 
 __all__ = ["COMMANDS", "GROUPS", "LIE_OPS", "QUADROTOR_SCENARIOS", "UGV_PAPER_HORIZON", "UGV_QUICK_STEPS",
-           "UGV_WEIGHTS", "ILQR_PROBLEMS", "ENV_BENCH_TASKS", "ENV_BENCH_IMPLS", "DTYPES",
+           "UGV_WEIGHTS", "ILQR_PROBLEMS", "ENV_BENCH_TASKS", "ENV_BENCH_IMPLS", "SOLVER_WORKLOADS", "DTYPES",
            "budget_item"]
 
 ME2_PAPER = ("Torres Alberto et al., \"A linearization method based on Lie algebra for pose estimation in a "
@@ -51,6 +51,10 @@ ILQR_PROBLEMS = ("pendulum", "cartpole")
 #: the tasks ``bench envs`` steps (with an anchor each, :data:`liecontrol.bench.envs.ENVS`)
 ENV_BENCH_TASKS = ("PendulumSwingUp", "CartPoleSwingUp")
 ENV_BENCH_IMPLS = ("ours", "gymnasium-sync", "envpool")
+#: the workloads ``bench solver`` times (:mod:`liecontrol.bench.solver` describes each)
+SOLVER_WORKLOADS = ("quadrotor_step", "pendulum_mpc_step", "pendulum_ilqr_iteration",
+                    "cartpole_swingup_batch64", "pendulum_swingup_batch64", "car_parking_step",
+                    "mpc_head_fwd_bwd", "cookbook_manipulator")
 QUADROTOR_SCENARIOS = ("circle", "circle_mass", "flip", "loop8")
 UGV_PAPER_HORIZON = 45
 UGV_QUICK_STEPS = 150
@@ -228,6 +232,47 @@ def bench_envs(p: argparse.ArgumentParser) -> None:
                    help="skip the rows of our env with torch.compile and AOTInductor")
     _common(p)
     p.set_defaults(_check=_check_devices)
+
+
+def _workload_list(s: str) -> tuple[str, ...]:
+    names = tuple(w.strip() for w in s.split(",") if w.strip())
+    bad = [w for w in names if w not in SOLVER_WORKLOADS]
+    if not names or bad:
+        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(SOLVER_WORKLOADS)}; "
+                                         f"unknown: {', '.join(bad) or '(empty)'}")
+    return names
+
+
+def _check_device(args: argparse.Namespace) -> str | None:
+    """``--device cuda``: this torch must see a CUDA device (torch is imported here, after ``--help``)."""
+    if args.device != "cuda":
+        return None
+    import torch
+
+    if not torch.cuda.is_available():
+        return "argument --device: cuda requested, but this torch has no CUDA device"
+    return None
+
+
+def bench_solver(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--workloads", type=_workload_list, default=SOLVER_WORKLOADS, metavar="A,B",
+                   help=f"comma-separated subset of: {', '.join(SOLVER_WORKLOADS)} (default: all)")
+    p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
+                   help="device of our solvers (the anchors run on the CPU)")
+    p.add_argument("--dtype", choices=DTYPES, default="float64",
+                   help="dtype of our solvers (float64 is the anchors' precision; the MPC head is float32 "
+                        "like SB3, the swing-ups' anchor rows float64)")
+    p.add_argument("--repeats", type=positive_int, default=None, metavar="N",
+                   help="timed calls per figure, the median is reported (default: 5, 1 for the 64 swing-ups)")
+    p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke run of seconds)")
+    p.add_argument("--eager", action="store_true",
+                   help="run iLQR's time sweeps eagerly (default: compiled programs, "
+                        "ILQROptions(compile=True); the first run builds them, a few seconds each, cached on "
+                        "disk)")
+    _common(p, threads=None)
+    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
+                   help="torch intra-op threads, and the anchors' (1: per-core timings)")
+    p.set_defaults(_check=_check_device)
 
 
 # --------------------------------------------------------------------------------------- compare, learn
@@ -439,6 +484,9 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
      "iLQR swing-ups vs mpc.pytorch box-DDP, pypose MPC and crocoddyl"),
     (("bench", "envs"), bench_envs, "liecontrol.bench.envs",
      "batched environment steps per second vs gymnasium SyncVectorEnv and EnvPool"),
+    (("bench", "solver"), bench_solver, "liecontrol.bench.solver",
+     "the solver workloads (MPC steps, iLQR swing-ups, the MPC policy head, the cookbook manipulator) vs "
+     "crocoddyl, CasADi, a numpy iLQR and SB3's MLP policy"),
     (("reproduce", "me2"), reproduce_me2, "liecontrol.reproduce.me2",
      f"pose prediction over a 300 ms horizon by the second-order Magnus (ME2) linearization (Table 1, "
      f"Fig. 3-4) of {ME2_PAPER}"),

@@ -29,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="liecontrol", formatter_class=HelpFormatter,
         description="Lie groups, differentiable controllers and robot learning in PyTorch.",
     )
+    parser.add_argument("--version", action="version", version=sys.modules["liecontrol"].__version__)
     top = parser.add_subparsers(dest="command", metavar="COMMAND")
     groups: dict[str, argparse._SubParsersAction] = {}
     for path, options, module, help_ in COMMANDS:

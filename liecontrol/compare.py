@@ -36,7 +36,6 @@ import json
 import math
 import multiprocessing
 import os
-import platform
 import signal
 import sys
 import time
@@ -316,6 +315,11 @@ def _algo_record(results, curves, per_seed, params, ev_seeds, mpc_success, mpc_r
         "loaded": all(p["loaded"] for p in per_seed), "params": params}
 
 
+def budget_text(budgets: dict[str, int]) -> str:
+    """``{"ppo": 100000, "sac": 20000}`` as report text: ``PPO 100000 steps, SAC 20000 steps``."""
+    return ", ".join(f"{a.upper()} {int(b)} steps" for a, b in budgets.items())
+
+
 def _match_text(s: int | None, budget: int) -> str:
     return "not reached within budget" + f" ({budget} steps)" if s is None else f"{s} steps"
 
@@ -334,8 +338,8 @@ def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str],
          f"- MPC expert: iLQR MPC on the task's own model and cost, horizon "
          f"{mpc['horizon'] if mpc else '-'}, zero training" if mpc else "- MPC expert: skipped (--no-mpc)",
          f"- RL: stable-baselines3 {_sb3_version()} ({', '.join(a.upper() for a in algos)}), training seeds "
-         f"{rec['seeds']}, budget per seed {rec['budget_steps']} environment steps",
-         f"- machine: {platform.processor() or platform.machine()}, torch {torch.__version__}, "
+         f"{rec['seeds']}, budget per seed: {budget_text(rec['budget_steps'])}",
+         f"- torch {torch.__version__}, "
          f"{threads} intra-op thread(s) per process, {jobs} training process(es); command wall time "
          f"{wall:.0f} s", ""]
     for a in algos:
@@ -410,38 +414,63 @@ def _sb3_version() -> str:
     return stable_baselines3.__version__
 
 
+def step_ticks(linthresh: float, xmax: float) -> list[float]:
+    """Ticks of the symlog step axis: 0, then the powers of ten from ``linthresh`` up to ``xmax``; none
+    inside the linear part near 0, where their labels would overlap the 0."""
+    if not (xmax > 0 and linthresh > 0):
+        return [0.0]
+    k0, k1 = math.ceil(math.log10(linthresh) - 1e-9), math.floor(math.log10(xmax) + 1e-9)
+    return [0.0] + [10.0 ** k for k in range(k0, k1 + 1)]
+
+
+def _steps_label(x: float, _pos=None) -> str:
+    if x == 0:
+        return "0"
+    for div, unit in ((1e6, "M"), (1e3, "k")):
+        if x >= div:
+            return f"{x / div:g}{unit}"
+    return f"{x:g}"
+
+
 def _plot(rec: dict, algos: list[str], path: str) -> None:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
+    from matplotlib.ticker import FixedLocator, FuncFormatter, NullLocator
 
     fig = Figure(figsize=(11, 4.2))
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
     colors = {"ppo": "tab:blue", "sac": "tab:orange"}
-    smallest = []
+    smallest, largest = [], [1.0]
+    scale = {"return": 1.0, "success": 100.0}  # success rate drawn in percent
     for a in algos:
         c = rec[a]["curve"]
         st = np.asarray(c["steps"], dtype=float)
         if st.size > 1:
             smallest.append(float(st[1]))
+        largest.append(float(st.max(initial=1.0)))
         for ax, key in zip(axes, ("return", "success")):
-            mean = np.asarray(c[f"{key}_mean"], dtype=float)
-            lo, hi = (np.asarray(c[f"{key}_{k}"], dtype=float) for k in ("min", "max"))
+            mean = scale[key] * np.asarray(c[f"{key}_mean"], dtype=float)
+            lo, hi = (scale[key] * np.asarray(c[f"{key}_{k}"], dtype=float) for k in ("min", "max"))
             ax.plot(st, mean, color=colors.get(a), label=f"{a.upper()} (mean of {len(rec['seeds'])} seeds)")
-            ax.fill_between(st, lo, hi, color=colors.get(a), alpha=0.2)
+            ax.fill_between(st, lo, hi, color=colors.get(a), alpha=0.2, label=f"{a.upper()} min-max of seeds")
     mpc = rec.get("mpc")
-    for ax, key, label in zip(axes, ("return", "success"), ("mean evaluation return", "success rate")):
+    for ax, key, label in zip(axes, ("return", "success"), ("mean evaluation return", "success rate [%]")):
         if mpc:
             y = mpc["return"]["mean"] if key == "return" else mpc["success_rate"]
             if y is not None:
-                ax.axhline(y, color="k", linestyle="--", label="MPC (no training)")
+                ax.axhline(scale[key] * y, color="k", linestyle="--", label="MPC (no training)")
+        linthresh = max(min(smallest), 1.0) if smallest else 1.0
         if smallest:
-            ax.set_xscale("symlog", linthresh=max(min(smallest), 1.0))
-        ax.set_xlim(left=0)
-        ax.set_xlabel("environment steps (symlog)")
+            ax.set_xscale("symlog", linthresh=linthresh)
+            ax.xaxis.set_major_locator(FixedLocator(step_ticks(linthresh, max(largest))))
+            ax.xaxis.set_minor_locator(NullLocator())
+        ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
+        ax.set_xlim(0, max(largest))
+        ax.set_xlabel("environment steps (linear to the first evaluation, then log)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-    axes[1].set_ylim(-0.05, 1.05)
+    axes[1].set_ylim(0, 100)
     vals = [v for a in algos for v in rec[a]["curve"]["return_min"] + rec[a]["curve"]["return_max"]
             if v is not None]
     ref = abs(mpc["return"]["mean"]) if mpc and mpc["return"]["mean"] is not None else 0.0

@@ -37,7 +37,7 @@ from liecontrol._progress import bar, sb3_callback
 from torchlie import se3, so3
 
 __all__ = ["add_arguments", "run", "karcher_mean_se3", "interpolation_check", "averaging_check",
-           "swingup_check"]
+           "swingup_check", "shared_bins", "cube_limits", "return_gap_note"]
 
 
 add_arguments = _options.demo
@@ -85,10 +85,11 @@ def averaging_check(clouds: int, per_cloud: int, gen: torch.Generator, noise: fl
     naive = X.mean(1)
     naive_R = so3.project(naive[..., :3, :3])
     naive_err = so3.log(truth[..., :3, :3].transpose(-1, -2) @ naive_R).norm(dim=-1)
+    karcher_rot_err = so3.log(truth[..., :3, :3].transpose(-1, -2) @ M[..., :3, :3]).norm(dim=-1)
     return {
         "clouds": clouds, "per_cloud": per_cloud, "noise_rad": noise, "iterations": iters, "seconds": elapsed,
         "karcher_err_max": karcher_err.max().item(), "naive_rotation_err_mean": naive_err.mean().item(),
-        "_karcher_err": karcher_err, "_naive_err": naive_err,
+        "_karcher_err": karcher_err, "_naive_err": naive_err, "_karcher_rot_err": karcher_rot_err,
     }
 
 
@@ -189,45 +190,144 @@ def mpc_vs_rl(envs: int, ppo_steps: int, seed: int = 0, quiet: bool = True) -> d
     return out
 
 
+def shared_bins(*samples, bins: int = 30):
+    """Histogram bin edges spanning the finite values of every sample, so that histograms drawn with
+    them compare bin by bin."""
+    import numpy as np
+
+    values = np.concatenate([np.asarray(x, dtype=float).ravel() for x in samples])
+    values = values[np.isfinite(values)]
+    return np.histogram_bin_edges(values if values.size else np.zeros(1), bins=bins)
+
+
+def cube_limits(points, margin: float = 0.1):
+    """``(low, high)`` of one cube holding every row of ``points (k, 3)``: equal axes for a 3-D plot."""
+    import numpy as np
+
+    p = np.asarray(points, dtype=float).reshape(-1, 3)
+    centre = (p.min(0) + p.max(0)) / 2
+    half = (1 + margin) * max(float((p.max(0) - p.min(0)).max()) / 2, 1e-9)
+    return centre - half, centre + half
+
+
+def return_gap_note(duel: dict, horizon: int | None = None) -> str | None:
+    """One line saying why the MPC's mean return is below PPO's, or None when it is not."""
+    mpc, ppo = duel["mpc"], duel["ppo"]
+    if not mpc["return_mean"] < ppo["return_mean"]:
+        return None
+    if horizon is None:
+        from learning.policies import DEFAULT_HORIZON
+
+        horizon = DEFAULT_HORIZON.get(duel.get("task", ""), 30)
+    return (f"MPC's mean return ({mpc['return_mean']:.0f}) is below PPO's ({ppo['return_mean']:.0f}): PPO "
+            f"is trained to maximize this episode return, while the MPC, untrained, minimizes its own "
+            f"{horizon}-step cost (the reward's weights with a 10x terminal weight) and swings up on a "
+            f"different schedule; success (upright at the end): MPC {100 * mpc['success_rate']:.0f} %, "
+            f"PPO {100 * ppo['success_rate']:.0f} %.")
+
+
+def _save(fig, path: Path, files: list[str]) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    files.append(str(path))
+
+
+def _plot_interpolation(ax, interp: dict) -> None:
+    import numpy as np
+
+    paths = interp["_path"]
+    for i, path in enumerate(paths):
+        p = path[:, :3, 3].numpy()
+        ax.plot(p[:, 0], p[:, 1], p[:, 2], color="0.5", lw=1, label=None if i else "geodesic (position)")
+        for j, X in enumerate(path[::8]):
+            o = X[:3, 3].numpy()
+            for k, (c, name) in enumerate(zip("rgb", "xyz")):
+                d = 0.25 * X[:3, k].numpy()
+                ax.plot([o[0], o[0] + d[0]], [o[1], o[1] + d[1]], [o[2], o[2] + d[2]], color=c, lw=1.2,
+                        label=None if i or j else f"pose frame: {name} axis")
+        ax.scatter(*p[0], color="k", marker="o", s=30, label="start X0" if i == 0 else None)
+        ax.scatter(*p[-1], color="k", marker="s", s=30, label="end X1" if i == 0 else None)
+    lo, hi = cube_limits(np.concatenate([path[:, :3, 3].numpy() for path in paths]))
+    ax.set_xlim(lo[0], hi[0])
+    ax.set_ylim(lo[1], hi[1])
+    ax.set_zlim(lo[2], hi[2])
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel("x")
+    ax.set_ylabel("y")
+    ax.set_zlabel("z")
+    ax.legend(fontsize=7, loc="upper left")
+    ax.set_title(f"SE(3) geodesics (3 of {interp['pairs']}, computed in one call)")
+
+
+def _plot_averaging(ax, avg: dict) -> None:
+    import numpy as np
+    from matplotlib.ticker import LogLocator
+
+    naive = np.maximum(avg["_naive_err"].numpy(), 1e-18)
+    karcher = max(float(avg["_karcher_rot_err"].max()), 1e-18)  # exactly 0 cannot sit on a log axis
+    bins = np.geomspace(naive.min() / 1.1, naive.max() * 1.1, 30)
+    ax.hist(naive, bins=bins, alpha=0.7, label="naive matrix average (projected onto SO(3))")
+    ax.axvline(karcher, color="k", ls="--", label=f"Karcher mean: largest error ({karcher:.0e} rad)")
+    ax.set_xscale("log")
+    ax.set_xlim(karcher / 10, naive.max() * 10)
+    ax.xaxis.set_major_locator(LogLocator(numticks=7))
+    ax.set_xlabel("rotation error to the true pose [rad] (log scale)")
+    ax.set_ylabel("clouds")
+    ax.legend(fontsize=8, loc="upper center")
+    ax.set_title(f"averaging {avg['clouds']} clouds of {avg['per_cloud']} noisy poses")
+
+
+def _plot_duel(fig, a1, a2, duel: dict) -> None:
+    import numpy as np
+
+    from liecontrol.report import quantile_band
+
+    runs = {name: duel["_" + name] for name in ("mpc", "ppo")}
+    bins = shared_bins(*(r.returns for r in runs.values()))
+    for name, color in (("mpc", "C0"), ("ppo", "C1")):
+        r, m = runs[name], duel[name]
+        label = f"{name.upper()}: success {100 * m['success_rate']:.0f} %, return {m['return_mean']:.0f}"
+        a1.hist(r.returns, bins=bins, alpha=0.6, color=color, label=label)
+        t = np.arange(r.error_curve.shape[1]) * 0.05
+        median, lo, hi = quantile_band(r.error_curve)
+        a2.plot(t, median, color=color, label=f"{name.upper()} median")
+        a2.fill_between(t, lo, hi, color=color, alpha=0.2, label=f"{name.upper()} 10-90 % of episodes")
+    a1.set_xlabel("episode return")
+    a1.set_ylabel("episodes")
+    a1.legend(fontsize=8)
+    a2.set_xlabel("time [s]")
+    a2.set_ylabel("|angle from upright| [rad]")
+    a2.set_ylim(bottom=0)
+    a2.legend(fontsize=8)
+    fig.suptitle(f"pendulum swing-up on {duel['envs']} batched envs: MPC (no training) vs PPO "
+                 f"({duel['ppo_steps']} steps, trained in the demo)")
+    note = return_gap_note(duel)
+    if note is not None:
+        fig.text(0.5, 0.01, note, ha="center", va="bottom", fontsize=7, wrap=True)
+
+
 def _plot(out: Path, interp: dict, avg: dict, swing: dict | None = None, duel: dict | None = None
           ) -> list[str]:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    import numpy as np
 
-    files = []
-    fig = plt.figure(figsize=(6, 5))
-    ax = fig.add_subplot(projection="3d")
-    for path in interp["_path"]:
-        p = path[:, :3, 3].numpy()
-        ax.plot(p[:, 0], p[:, 1], p[:, 2], color="0.5", lw=1)
-        for X in path[::8]:
-            o = X[:3, 3].numpy()
-            for k, c in enumerate("rgb"):
-                d = 0.25 * X[:3, k].numpy()
-                ax.plot([o[0], o[0] + d[0]], [o[1], o[1] + d[1]], [o[2], o[2] + d[2]], color=c, lw=1.2)
-    ax.set_title(f"SE(3) geodesics (3 of {interp['pairs']}, computed in one call)")
+    files: list[str] = []
+    fig = plt.figure(figsize=(6.5, 6))
+    _plot_interpolation(fig.add_subplot(projection="3d"), interp)
     fig.tight_layout()
-    f = out / "se3_interpolation.png"
-    fig.savefig(f, dpi=110)
-    plt.close(fig)
-    files.append(str(f))
+    _save(fig, out / "se3_interpolation.png", files)
 
-    fig, ax = plt.subplots(figsize=(6, 3.6))
-    ax.hist(avg["_naive_err"].numpy(), bins=40, alpha=0.7, label="naive matrix average (projected)")
-    ax.axvline(avg["karcher_err_max"], color="k", ls="--", label="Karcher mean: max error")
-    ax.set_xscale("symlog", linthresh=1e-15)
-    ax.set_xlabel("rotation error to the true mean [rad]")
-    ax.set_ylabel("clouds")
-    ax.legend(fontsize=8)
-    ax.set_title(f"averaging {avg['clouds']} clouds of {avg['per_cloud']} noisy poses")
-    fig.tight_layout()
-    f = out / "se3_averaging.png"
-    fig.savefig(f, dpi=110)
-    plt.close(fig)
-    files.append(str(f))
+    fig, ax = plt.subplots(figsize=(6.5, 4))
+    _plot_averaging(ax, avg)
+    fig.text(0.5, 0.01, "The noise of each cloud is constructed to average to zero, so the true pose is its "
+             "exact Karcher mean:\nthe Karcher error is round-off; the naive average's is bias.",
+             ha="center", va="bottom", fontsize=7)
+    fig.tight_layout(rect=(0, 0.07, 1, 1))
+    _save(fig, out / "se3_averaging.png", files)
 
     if swing is not None:
         fig, axes = plt.subplots(2, 1, figsize=(6, 4.6), sharex=True)
@@ -240,36 +340,14 @@ def _plot(out: Path, interp: dict, avg: dict, swing: dict | None = None, duel: d
         axes[1].set_ylabel("torque [N m]")
         axes[1].set_xlabel("t [s]")
         axes[0].set_title(f"iLQR swing-up, |u| <= 3: {swing['upright']}/{swing['batch']} upright "
-                          "(8 shown)")
+                          f"({min(8, swing['batch'])} shown)")
         fig.tight_layout()
-        f = out / "pendulum_swingup.png"
-        fig.savefig(f, dpi=110)
-        plt.close(fig)
-        files.append(str(f))
+        _save(fig, out / "pendulum_swingup.png", files)
     if duel is not None:
-        fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4))
-        for name, color in (("mpc", "C0"), ("ppo", "C1")):
-            r, m = duel["_" + name], duel[name]
-            label = (f"{name.upper()}: success {100 * m['success_rate']:.0f} %, "
-                     f"return {m['return_mean']:.0f}")
-            a1.hist(r.returns, bins=30, alpha=0.6, color=color, label=label)
-            t = np.arange(r.error_curve.shape[1]) * 0.05
-            a2.plot(t, np.nanmedian(r.error_curve, 0), color=color, label=f"{name.upper()} median")
-            a2.fill_between(t, np.nanpercentile(r.error_curve, 10, 0), np.nanpercentile(r.error_curve, 90, 0),
-                            color=color, alpha=0.2)
-        a1.set_xlabel("episode return")
-        a1.set_ylabel("episodes")
-        a1.legend(fontsize=8)
-        a2.set_xlabel("time [s]")
-        a2.set_ylabel("|angle from upright| [rad]")
-        a2.legend(fontsize=8)
-        fig.suptitle(f"pendulum swing-up on {duel['envs']} batched envs: MPC (no training) vs PPO "
-                     f"({duel['ppo_steps']} steps, trained in the demo)")
-        fig.tight_layout()
-        f = out / "mpc_vs_ppo.png"
-        fig.savefig(f, dpi=110)
-        plt.close(fig)
-        files.append(str(f))
+        fig, (a1, a2) = plt.subplots(1, 2, figsize=(11, 4.4))
+        _plot_duel(fig, a1, a2, duel)
+        fig.tight_layout(rect=(0, 0.06, 1, 1))
+        _save(fig, out / "mpc_vs_ppo.png", files)
     return files
 
 

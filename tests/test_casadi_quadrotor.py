@@ -7,7 +7,7 @@ import sys
 import numpy as np
 import pytest
 
-ca = pytest.importorskip("casadi")
+ca = pytest.importorskip("casadi", reason="casadi is not installed (make bench-env installs the bench extra)")
 Rotation = pytest.importorskip("scipy.spatial.transform").Rotation
 
 from liecontrol.bench._casadi_quadrotor import CasadiQuadrotorMPC, run_closed_loop  # noqa: E402

@@ -27,7 +27,7 @@ BAD = {
     budget_item: ["0", "dqn=5", "ppo=-1", "ppo=x"],
 }
 BAD_BY_NAME = {"_anchor_list": ["foo", "pypose,bar"], "_ilqr_problem": ["ArmReach", "x"],
-               "task": ["ArmReach"]}
+               "task": ["ArmReach"], "_workload_list": ["quadrotor_step,nope", "", " , "]}
 PATH_TYPES = ("out_dir", "out_file", "existing_dir", "existing_file")
 
 

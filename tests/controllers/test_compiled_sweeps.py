@@ -1,0 +1,111 @@
+"""iLQR's time sweeps as compiled programs (``ILQROptions(compile=True)``) against the eager reference.
+
+The eager sweeps are the reference: the compiled ones must give the same values (to round-off), the same
+statuses and the same iteration counts, for any batch size (one program serves them all), with one bad
+element in the batch, and reload from the disk cache without building again.  Each program takes a few
+seconds to build, so the tests share one cache directory.
+"""
+
+import math
+
+import pytest
+import torch
+
+from controllers import _compiled
+from controllers.costs import QuadraticCost
+from controllers.dynamics import LinearDynamics
+from controllers.ilqr import ILQROptions, ILQRProblem, ilqr
+from controllers.problem import Reason
+from controllers.systems import Pendulum
+
+D = torch.float64
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _cache(tmp_path_factory):
+    mp = pytest.MonkeyPatch()
+    mp.setenv("LIECONTROL_CACHE", str(tmp_path_factory.mktemp("aoti")))
+    yield
+    mp.undo()
+
+
+def _swingup(B: int, T: int = 30):
+    g = torch.Generator().manual_seed(B)
+    x0 = torch.stack([torch.rand(B, generator=g, dtype=D) * 2 - 1, torch.zeros(B, dtype=D)], -1)
+    Q = torch.diag(torch.tensor([1.0, 0.1], dtype=D)).expand(T + 1, 2, 2).clone()
+    Q[-1] *= 100
+    cost = QuadraticCost(Q=Q, R=torch.tensor([[0.01]], dtype=D), x_ref=torch.tensor([math.pi, 0.0], dtype=D))
+    return ILQRProblem(Pendulum(damping=0.1), cost, x0, T, u_lower=-2.0, u_upper=2.0)
+
+
+def _both(problem, **kw):
+    eager = ilqr(problem, grad="none", options=ILQROptions(max_iter=40, **kw))
+    comp = ilqr(problem, grad="none", options=ILQROptions(max_iter=40, compile=True, **kw))
+    return eager, comp
+
+
+def _assert_same(a, b, tol=1e-9):
+    torch.testing.assert_close(b.u, a.u, atol=tol, rtol=0, equal_nan=True)
+    torch.testing.assert_close(b.x, a.x, atol=tol, rtol=0, equal_nan=True)
+    torch.testing.assert_close(b.K, a.K, atol=tol * 1e3, rtol=0, equal_nan=True)
+    torch.testing.assert_close(b.cost, a.cost, atol=tol, rtol=1e-12, equal_nan=True)
+    assert torch.equal(b.status.reason, a.status.reason)
+    assert torch.equal(b.status.iterations, a.status.iterations)
+    assert torch.equal(b.clamped, a.clamped)
+
+
+@pytest.mark.parametrize("B", [1, 5])
+def test_limited_swingup_equals_the_eager_sweeps_at_any_batch_size(B):
+    eager, comp = _both(_swingup(B))
+    assert (eager.status.reason == int(Reason.CONVERGED)).all()
+    assert eager.clamped.any()  # the limits bind: the clip path of the backward pass is exercised
+    _assert_same(eager, comp)
+
+
+def test_an_unbatched_problem_equals_the_eager_sweeps():
+    p = _swingup(1)
+    eager, comp = _both(ILQRProblem(p.dynamics, p.cost, p.x0[0], p.horizon, u_lower=-2.0, u_upper=2.0))
+    assert comp.u.shape == (p.horizon, 1) and comp.status.reason.shape == ()
+    _assert_same(eager, comp)
+
+
+def test_a_bad_element_stays_its_own_in_the_compiled_sweeps():
+    p = _swingup(4)
+    x0 = p.x0.clone()
+    x0[2, 0] = math.nan
+    eager, comp = _both(ILQRProblem(p.dynamics, p.cost, x0, p.horizon, u_lower=-2.0, u_upper=2.0))
+    assert comp.status.reason[2] == int(Reason.NONFINITE_INPUT)
+    assert (comp.status.reason[[0, 1, 3]] == int(Reason.CONVERGED)).all()
+    _assert_same(eager, comp)
+    alone = ilqr(_swingup(4), grad="none", options=ILQROptions(max_iter=40, compile=True))
+    torch.testing.assert_close(comp.u[[0, 1, 3]], alone.u[[0, 1, 3]], atol=1e-9, rtol=0)
+
+
+def test_several_controls_and_two_batch_dims_equal_the_eager_sweeps():
+    """A linear system with two inputs and a (2, 3) batch: Cholesky in the compiled backward pass; the
+    rollouts stay eager (the system's matrices are not numbers a program can bake in)."""
+    g = torch.Generator().manual_seed(1)
+    n, m, T = 3, 2, 12
+    A = torch.eye(n, dtype=D) + 0.1 * torch.randn(n, n, generator=g, dtype=D)
+    Bm = torch.randn(n, m, generator=g, dtype=D)
+    x0 = torch.randn(2, 3, n, generator=g, dtype=D)
+    cost = QuadraticCost(Q=torch.eye(n, dtype=D), R=0.1 * torch.eye(m, dtype=D))
+    p = ILQRProblem(LinearDynamics(A, Bm), cost, x0, T)
+    eager, comp = _both(p)
+    assert (comp.status.reason == int(Reason.CONVERGED)).all()
+    _assert_same(eager, comp)
+
+
+def test_a_built_program_is_loaded_from_disk_by_a_fresh_process(monkeypatch):
+    p = _swingup(3)
+    ref = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
+    assert list(_compiled.cache_dir().glob("ilqr_*.pt2"))
+    # a fresh process: nothing in memory, and building is not allowed
+    monkeypatch.setattr(_compiled, "_PROGRAMS", {})
+
+    def no_build(*a, **k):
+        raise AssertionError("the program should have come from the disk cache")
+
+    monkeypatch.setattr(_compiled, "_compile", no_build)
+    again = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
+    _assert_same(ref, again, tol=0.0)
