@@ -386,6 +386,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"    {name.upper():<6}  {100 * m['success_rate']:5.1f} %  {m['return_mean']:8.1f} ± "
               f"{m['return_std']:<8.1f}  {m['final_error_median']:.1e}                 "
               f"{m['step_ms_median']:.2f}")
+    note = return_gap_note(duel)
+    if note is not None:
+        print(f"    {note}")
     summary = {"interpolation": {k: v for k, v in interp.items() if not k.startswith("_")},
                "averaging": {k: v for k, v in avg.items() if not k.startswith("_")},
                "roundtrip_edges": edges,

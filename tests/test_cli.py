@@ -33,7 +33,10 @@ def test_console_script_entry_point_runs():
     assert r.returncode == 0 and "lie" in r.stdout
 
 
-def test_demo_reaches_its_accuracy(tmp_path, capsys):
+def test_demo_reaches_its_accuracy(tmp_path, capsys, monkeypatch):
+    from liecontrol import demo
+
+    monkeypatch.setattr(demo, "return_gap_note", lambda duel, horizon=None: "NOTE: why the returns differ")
     args = ["demo", "--out", str(tmp_path), "--pairs", "64", "--clouds", "8", "--pendulums", "4",
             "--num-envs", "6", "--budget-steps", "64", "--quiet"]
     assert cli.main(args) == 0
@@ -51,6 +54,10 @@ def test_demo_reaches_its_accuracy(tmp_path, capsys):
     assert duel["envs"] == 6 and duel["ppo_steps"] >= 64  # SB3 collects whole rollouts
     assert duel["mpc"]["success_rate"] == 1.0 and duel["mpc"]["final_error_median"] < 1e-3  # no training
     assert duel["mpc"]["invalid"] == duel["ppo"]["invalid"] == 0
+    # demo.return_gap_note's line (tests/test_plots.py: when and what) is printed right after the table
+    lines = capsys.readouterr().out.splitlines()
+    ppo_row = next(i for i, line in enumerate(lines) if line.strip().startswith("PPO "))
+    assert lines[ppo_row + 1].strip() == "NOTE: why the returns differ"
     for name in ("se3_interpolation.png", "se3_averaging.png", "pendulum_swingup.png", "mpc_vs_ppo.png"):
         assert (tmp_path / name).stat().st_size > 1000
 
