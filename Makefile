@@ -30,7 +30,7 @@ $(VENV)/.installed-bench: pyproject.toml | $(BIN)/python
 install: $(VENV)/.installed-dev
 
 demo: $(VENV)/.installed-base
-	$(BIN)/liecontrol demo --out out
+	$(BIN)/liecontrol demo
 
 test: $(VENV)/.installed-dev
 	$(BIN)/ruff check .

@@ -22,7 +22,7 @@ Steps:
    the iterations used, and (optionally, with matplotlib) the error after each Gauss–Newton iteration,
    saved as ``out/riemannian_mean/convergence.png``.
 
-Run:  python examples/riemannian_mean.py [--samples 500] [--no-plot]
+Run:  python examples/riemannian_mean.py [--samples 500] [--no-plots]
 """
 
 from __future__ import annotations
@@ -113,6 +113,6 @@ if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=500)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-plot", action="store_true")
+    parser.add_argument("--no-plots", action="store_true")
     args = parser.parse_args()
-    main(n_samples=args.samples, seed=args.seed, plot=not args.no_plot)
+    main(n_samples=args.samples, seed=args.seed, plot=not args.no_plots)

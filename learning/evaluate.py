@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -266,34 +265,9 @@ def _fmt(v) -> str:
     return f"{v:.4g}"
 
 
-class _TextBar:
-    """A minimal stand-in for tqdm (used when tqdm is not installed): one line on stderr."""
-
-    def __init__(self, total: int, desc: str):
-        self.total, self.desc, self.n, self.post, self._t0, self._last = total, desc, 0, "", time.time(), 0.0
-
-    def update(self, k: int) -> None:
-        self.n += k
-        now = time.time()
-        if now - self._last > 0.5 or self.n >= self.total:
-            self._last = now
-            rate = self.n / max(now - self._t0, 1e-9)
-            sys.stderr.write(f"\r{self.desc}: {self.n}/{self.total} steps, {rate:.1f} step/s {self.post}")
-            sys.stderr.flush()
-
-    def set_postfix(self, **kw) -> None:
-        self.post = ", ".join(f"{k}={v}" for k, v in kw.items())
-
-    def close(self) -> None:
-        sys.stderr.write("\n")
-        sys.stderr.flush()
-
-
 def _progress_bar(total: int, desc: str):
-    try:
-        from tqdm.auto import tqdm
-    except ImportError:
-        return _TextBar(total, desc)
+    from tqdm.auto import tqdm  # a dependency
+
     return tqdm(total=total, desc=desc, unit="step")
 
 
@@ -353,7 +327,7 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
             ``seed, seed+1, ..., seed+episodes-1`` with ``episodes = num_envs``.
         max_episode_steps: episode length (default: the task's).
         device, dtype, compile: of the environments (the observation the policy sees has this dtype).
-        progress: show a progress bar over the control steps (tqdm if installed, else a line on stderr).
+        progress: show a progress bar over the control steps (tqdm, on stderr).
         timing_batch1: also time the policy at batch 1 on ``timing_steps`` steps (default: a whole
             episode, so that the two timings see the same mix of swing-up and balancing steps) of one
             environment, the first seed's; run after the evaluation, the policy reset before and after.

@@ -1,14 +1,19 @@
-"""``liecontrol compare ENV``: the MPC expert (zero training) next to PPO and SAC (stable-baselines3) trained
+"""``liecontrol compare TASK``: the MPC expert (zero training) next to PPO and SAC (stable-baselines3) trained
 within a step budget, all evaluated on the same held-out episodes.
 
 For each training seed and algorithm the agent is trained by :func:`learning.baselines.train` (or, with
 ``--load DIR``, rebuilt from the ``policy.pt`` weights a previous run saved, without training), its learning
 curve recorded on the evaluation episodes; then the MPC and every agent are evaluated by
 :func:`learning.evaluate` on the same seeds (``10⁶ + j``, disjoint from every training episode).  Writes
-into ``OUT/ENV/``: ``report.md`` (setup, table, per-seed results, RL steps to match the MPC, goals),
+into ``--out`` (default ``out/compare/TASK``): ``report.md`` (setup, table, per-seed results, RL steps to
+match the MPC, goals),
 ``curves.png`` (mean evaluation return and success rate against environment steps, the mean over the
 training seeds with a min–max band, the MPC as a horizontal line), ``compare.json`` (also written to
-``--json PATH``) and ``agents/ALGO/seedS/{model.zip, policy.pt, agent.json}``.
+``--json PATH``) and ``agents/ALGO/seedS/{model.zip, policy.pt, agent.json}`` (and ``tb/``, the TensorBoard
+logs, with ``--tensorboard``).  ``--load DIR`` reads the ``agents/`` folder of such a ``DIR``.
+
+Progress: one bar per agent on stderr, also for agents trained in worker processes (their log lines come
+to the command through a queue); Ctrl-C stops the workers at once.
 
 JSON schema: ``{"env", "mpc": {metrics} | null, "ppo": {metrics}, "sac": {metrics}, "budget_steps":
 {algo: steps}, "seeds": [training seeds]}``; the metrics are the subset :data:`METRIC_KEYS` of
@@ -18,25 +23,31 @@ seeds pooled), and an algorithm's entry adds ``per_seed``, ``curve``, ``steps_to
 
 "RL steps to match the MPC": the first evaluated step count at which the agent's evaluation success
 rate, averaged over the training seeds, reaches the MPC's (and, separately, the mean return reaches the
-MPC's mean return), else "not reached within budget".
+MPC's mean return), else "not reached within budget".  The learning curve is evaluated before training,
+at the first rollout boundary at or past each multiple of ``--eval-every`` (the policy then is the one
+updated on exactly that many steps) and after the last step.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import multiprocessing
 import os
+import signal
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from liecontrol.report import print_table, restores_threads
+from liecontrol import _options
+from liecontrol._args import task_name as resolve_env
+from liecontrol._progress import TrainingProgress, write
+from liecontrol.report import fmt, print_table, restores_threads
 
 __all__ = ["add_arguments", "run", "compare", "METRIC_KEYS", "parse_budgets", "resolve_env"]
 
@@ -48,69 +59,25 @@ METRIC_KEYS = ("episodes", "num_envs", "success_rate", "return", "final_error", 
 DEFAULT_EVAL_EPISODES = {"PendulumSwingUp": 32, "CartPoleSwingUp": 32}
 
 
-def resolve_env(value: str) -> str:
-    """The task name of ``value`` (a task name or a ``liecontrol/<Name>-v0`` id); argparse type of ENV."""
-    from learning.envs import TASKS
-
-    name = value
-    if "/" in name:
-        ns, rest = name.split("/", 1)
-        name = rest.rsplit("-v", 1)[0] if ns == "liecontrol" else value
-    if name not in TASKS:
-        raise argparse.ArgumentTypeError(
-            f"unknown environment {value!r}; known: {sorted(TASKS)} (or liecontrol/<name>-v0)")
-    return name
-
-
-def parse_budgets(items: list[str] | None, algos: list[str], task) -> dict[str, int]:
-    """``--budget-steps`` items (``N`` for every algorithm, or ``ALGO=N``) over the per-task defaults."""
+def parse_budgets(items: list | None, algos: list[str], task) -> dict[str, int]:
+    """``--budget-steps`` items (``N`` for every algorithm, or ``ALGO=N``; strings or the ``(algo | None, N)``
+    pairs the command line gives) over the per-task defaults."""
     from learning.baselines import default_budget
 
     out = {a: default_budget(a, task) for a in algos}
     for it in items or []:
-        algo, _, n = it.rpartition("=")
         try:
-            steps = int(float(n))
-        except ValueError:
-            steps = 0
-        if steps < 1 or (algo and algo not in algos):
-            raise ValueError(f"argument --budget-steps: expected N or ALGO=N with ALGO in {algos} and N a "
-                             f"positive int, got {it!r}")
+            algo, steps = _options.budget_item(it) if isinstance(it, str) else it
+        except argparse.ArgumentTypeError as e:
+            raise ValueError(f"argument --budget-steps: {e}") from None
+        if algo and algo not in algos:
+            raise ValueError(f"argument --budget-steps: {algo}={steps} names an algorithm not in {algos}")
         for a in ([algo] if algo else algos):
             out[a] = steps
     return out
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("env", metavar="ENV", type=resolve_env,
-                        help="task name (PendulumSwingUp, CartPoleSwingUp, ...) or liecontrol/<name>-v0")
-    parser.add_argument("--algos", nargs="+", default=["ppo", "sac"], choices=["ppo", "sac"])
-    parser.add_argument("--budget-steps", nargs="+", default=None, metavar="[ALGO=]N",
-                        help="training environment steps per seed: N for every algorithm or ALGO=N "
-                             "(default per task, e.g. PendulumSwingUp ppo=60000 sac=5000)")
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2], help="training seeds")
-    parser.add_argument("--eval-episodes", type=int, default=None,
-                        help="held-out evaluation episodes (seeds 10^6 + j), also those of the curves "
-                             "(default 32 for the pendulum and the cart-pole, else 16)")
-    parser.add_argument("--eval-every", type=int, default=None,
-                        help="environment steps between two curve evaluations (default budget/20)")
-    parser.add_argument("--num-envs", type=int, default=None,
-                        help="evaluation batch N (default: all evaluation episodes in one batch)")
-    parser.add_argument("--train-envs", type=int, default=None,
-                        help="training environments (default per task and algorithm)")
-    parser.add_argument("--out", default="out/compare", help="output root (writes OUT/ENV/...)")
-    parser.add_argument("--load", default=None, metavar="DIR",
-                        help="reuse the policy.pt weights of a previous run (its OUT/ENV folder) instead "
-                             "of training; only the safe .pt files are read, never the SB3 .zip")
-    parser.add_argument("--json", default=None, metavar="PATH", help="also write the JSON record here")
-    parser.add_argument("--mpc-horizon", type=int, default=None, help="MPC horizon (default per task)")
-    parser.add_argument("--no-mpc", action="store_true", help="skip the MPC expert")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: robust on a shared machine)")
-    parser.add_argument("--jobs", type=int, default=None,
-                        help="agents trained at once in worker processes (default: one per CPU core; "
-                             "1: in this process); results do not depend on it")
-    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
+add_arguments = _options.compare
 
 
 def _metrics(summary: dict) -> dict:
@@ -144,89 +111,140 @@ def _find_saved(load: Path, task: str, algo: str, seed: int) -> Path:
                             f"(expected {load}/agents/{algo}/seed{seed}/policy.pt)")
 
 
-
-
 def _train_and_evaluate(algo: str, task, budget: int, seed: int, every: int, E: int, out_dir: str,
-                        train_envs: int | None, ev_seeds: list[int], N: int, threads: int, log=None):
+                        train_envs: int | None, ev_seeds: list[int], N: int, threads: int, tensorboard: bool,
+                        log=None):
     """Train one agent and evaluate it on the held-out episodes (the unit of work of a ``--jobs`` worker
     process, or of the command itself with one job).  Returns ``(eval result, curve, train_time_s,
     num_timesteps, params, notes)``."""
     from learning import baselines as bl
     from learning.evaluate import evaluate
 
-    if threads and threads > 0:
-        torch.set_num_threads(threads)
+    torch.set_num_threads(threads)
     res = bl.train(algo, task, budget, seed, eval_every=every, eval_episodes=E, out_dir=out_dir,
-                   num_envs=train_envs, log=log)
+                   num_envs=train_envs, log=log, tensorboard=tensorboard)
     r = evaluate(res.model, task, seeds=ev_seeds, num_envs=N, dtype=torch.float32, progress=False)
     return r, res.curve(), res.train_time_s, res.num_timesteps, res.params, list(res.notes)
+
+
+_QUEUE = None  # a worker process's queue to the command (set by _worker_init)
+
+
+def _worker_init(queue) -> None:
+    """A worker process ignores Ctrl-C (the command stops its workers) and sends its log lines to
+    ``queue``."""
+    global _QUEUE
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _QUEUE = queue
+
+
+def _in_worker(key, *args):
+    return _train_and_evaluate(*args, log=lambda line: _QUEUE.put((key, line)))
+
+
+class _Workers:
+    """``jobs`` spawned worker processes training agents, their log lines feeding ``progress``.  Leaving the
+    ``with`` block by an exception (Ctrl-C included) terminates the workers at once; normally they finish."""
+
+    def __init__(self, jobs: int, progress: TrainingProgress):
+        ctx = multiprocessing.get_context("spawn")  # a fresh interpreter per worker (no forked thread pools)
+        self.queue = ctx.Queue()
+        self.pool = ctx.Pool(jobs, initializer=_worker_init, initargs=(self.queue,))
+        progress.drain(self.queue)
+        self.progress = progress
+
+    def submit(self, key, *args):
+        return self.pool.apply_async(_in_worker, (key, *args))
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, exc_type, *_):
+        if exc_type is None:
+            self.pool.close()
+        else:
+            self.pool.terminate()
+        self.pool.join()
+        self.progress.close()
+        self.queue.close()
+        self.queue.join_thread()
 
 
 @restores_threads
 def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | None = None,
             seeds=(0, 1, 2), eval_episodes: int | None = None, eval_every: int | None = None,
-            num_envs: int | None = None, train_envs: int | None = None, out: str | Path = "out/compare",
+            num_envs: int | None = None, train_envs: int | None = None, out: str | Path | None = None,
             load: str | Path | None = None, mpc: bool = True, mpc_horizon: int | None = None,
-            threads: int = 1, jobs: int | None = None, log=None) -> dict:
-    """Run the comparison (module docstring) and write its files; returns the JSON record, with the
-    extra key ``"_files"`` (the paths written) and ``"_wall_time_s"``.
+            threads: int = 1, jobs: int | None = None, tensorboard: bool = False, log=None,
+            quiet: bool = True) -> dict:
+    """Run the comparison (module docstring) and write its files into ``out`` (default
+    ``out/compare/TASK``); returns the JSON record, with the extra keys ``"_files"`` (the paths written)
+    and ``"_wall_time_s"``.
 
     ``jobs``: agents trained (and evaluated) at once in worker processes (default: one per CPU core, at
     most one per agent; 1 trains in this process).  The MPC is evaluated here meanwhile.  Every agent
     is trained from its own seed with ``threads`` intra-op threads, so the results do not depend on
-    ``jobs``."""
+    ``jobs``.  ``log(line)`` receives the progress lines; progress bars on stderr unless ``quiet``.
+    ``eval_every``: environment steps between two learning-curve points (default: a twentieth of the
+    budget); every curve also has a point before training and one after its last step."""
     from learning import baselines as bl
-    from learning.envs.single import make_task
+    from learning.envs.single import int_arg, make_task
     from learning.evaluate import evaluate, jsonable
     from learning.policies import task_expert
 
     t_start = time.perf_counter()
-    if threads and threads > 0:
-        torch.set_num_threads(threads)
+    threads = int_arg(threads, "threads", "compare")
+    torch.set_num_threads(threads)
     task = make_task(resolve_env(env))
     algos = list(algos)
-    seeds = [int(s) for s in seeds]
+    seeds = [int_arg(s, "seeds", "compare", 0) for s in seeds]
     if not seeds:
         raise ValueError("argument --seeds: give at least one training seed")
     budgets = parse_budgets(None, algos, task) if budget_steps is None else {a: int(budget_steps[a])
                                                                              for a in algos}
-    E = int(eval_episodes or DEFAULT_EVAL_EPISODES.get(task.name, 16))
-    if E < 1:
-        raise ValueError(f"argument --eval-episodes: must be positive, got {E}")
-    N = min(int(num_envs or E), E)
+    E = DEFAULT_EVAL_EPISODES.get(task.name, 16) if eval_episodes is None else eval_episodes
+    E = int_arg(E, "eval_episodes", "compare")
+    N = min(E, int_arg(num_envs, "num_envs", "compare") if num_envs is not None else E)
+    if eval_every is not None:
+        int_arg(eval_every, "eval_every", "compare")
+    if jobs is not None:
+        int_arg(jobs, "jobs", "compare")
     ev_seeds = bl.eval_seeds(E)
-    root = Path(out) / task.name
+    root = Path(out) if out is not None else Path("out/compare") / task.name
     root.mkdir(parents=True, exist_ok=True)
     say = log or (lambda s: None)
     record: dict = {"env": task.name, "mpc": None}
     notes: list[str] = []
 
-    if jobs is not None and (not isinstance(jobs, int) or isinstance(jobs, bool) or jobs < 1):
-        raise ValueError(f"argument --jobs: must be a positive int, got {jobs!r}")
     work = [(a, s) for a in algos for s in seeds] if load is None else []
     jobs = min(jobs or os.cpu_count() or 1, max(len(work), 1))
-    pool, futures = None, {}
-    if jobs > 1:  # spawn: a fresh interpreter per worker (no forked torch thread pools)
-        pool = ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"))
-        for a, s in work:
-            every = eval_every or max(1, budgets[a] // 20)
-            futures[(a, s)] = pool.submit(_train_and_evaluate, a, task, budgets[a], s, every, E,
-                                          str(root / "agents" / a / f"seed{s}"), train_envs, ev_seeds, N,
-                                          threads)
-        say(f"{task.name}: training {len(work)} agents in {jobs} worker processes")
+    progress = TrainingProgress({k: budgets[k[0]] for k in work}, quiet=quiet,
+                                label=lambda k: f"{task.name} {k[0]} seed {k[1]}", log=log)
 
-    try:
+    def job(a, s):
+        every = eval_every or max(1, budgets[a] // 20)
+        return (a, task, budgets[a], s, every, E, str(root / "agents" / a / f"seed{s}"), train_envs, ev_seeds,
+                N, threads, tensorboard)
+
+    with contextlib.ExitStack() as stack:
+        futures = {}
+        if jobs > 1:
+            workers = stack.enter_context(_Workers(jobs, progress))
+            futures = {(a, s): workers.submit((a, s), *job(a, s)) for a, s in work}
+            say(f"{task.name}: training {len(work)} agents in {jobs} worker processes")
+        else:
+            stack.callback(progress.close)
+
         mpc_res = None
         if mpc:
             expert = task_expert(task, horizon=mpc_horizon)
             say(f"{task.name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
-            mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=False)
+            mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=not quiet)
             record["mpc"] = _metrics(mpc_res.summary()) | {"horizon": expert.horizon, "eval_seeds": ev_seeds}
             say(f"{task.name}: MPC success {mpc_res.success.mean():.3f}, return {mpc_res.returns.mean():.1f}")
         mpc_success = float(mpc_res.success.mean()) if mpc_res is not None else math.nan
         mpc_return = float(mpc_res.returns.mean()) if mpc_res is not None else math.nan
 
-        evals: dict[str, list] = {}
         for algo in algos:
             per_seed, results, curves = [], [], []
             for s in seeds:
@@ -243,53 +261,22 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
                     loaded = True
                     r = evaluate(model, task, seeds=ev_seeds, num_envs=N, dtype=torch.float32, progress=False)
                 else:
-                    if pool is not None:
-                        r, curve, train_time, steps, params, new_notes = futures[(algo, s)].result()
+                    if futures:
+                        r, curve, train_time, steps, params, new_notes = futures[(algo, s)].get()
                     else:
-                        every = eval_every or max(1, budgets[algo] // 20)
                         r, curve, train_time, steps, params, new_notes = _train_and_evaluate(
-                            algo, task, budgets[algo], s, every, E, str(root / "agents" / algo / f"seed{s}"),
-                            train_envs, ev_seeds, N, threads, log=say)
+                            *job(algo, s), log=lambda line, k=(algo, s): progress.line(k, line))
                     notes.extend(n for n in new_notes if n not in notes)
                     loaded = False
                 results.append(r)
                 curves.append(curve)
-                per_seed.append({"seed": s, "success_rate": float(r.success.mean()),
-                                 "return_mean": float(r.returns.mean()), "return_std": float(r.returns.std()),
-                                 "final_error_mean": float(np.nanmean(r.final_error)),
-                                 "train_time_s": train_time, "num_timesteps": steps, "loaded": loaded,
-                                 "steps_to_match": {
-                                     "success": bl.steps_to_match(curve["steps"], curve["success"],
-                                                                  mpc_success),
-                                     "return": bl.steps_to_match(curve["steps"], curve["returns"],
-                                                                 mpc_return)}})
+                per_seed.append(_seed_record(s, r, curve, train_time, steps, loaded, mpc_success, mpc_return))
                 say(f"{task.name} {algo} seed {s}: success {per_seed[-1]['success_rate']:.3f}, "
                     f"return {per_seed[-1]['return_mean']:.1f}")
-            pooled = _pooled(results)
-            st, rmean, rmin, rmax = bl.mean_curve(curves, "returns")
-            _, smean, smin, smax = bl.mean_curve(curves, "success")
-            times = [p["train_time_s"] for p in per_seed if p["train_time_s"] is not None]
-            record[algo] = _metrics(pooled.summary()) | {
-                "eval_seeds": ev_seeds, "per_seed": per_seed,
-                "steps_to_match": {"success": bl.steps_to_match(st, smean, mpc_success),
-                                   "return": bl.steps_to_match(st, rmean, mpc_return)},
-                "curve": {"steps": st, "return_mean": rmean, "return_min": rmin, "return_max": rmax,
-                          "success_mean": smean, "success_min": smin, "success_max": smax},
-                "train_time_s": {"mean": float(np.mean(times)) if times else None,
-                                 "total": float(sum(times))},
-                "num_timesteps": max(int(p["num_timesteps"] or 0) for p in per_seed),
-                "loaded": all(p["loaded"] for p in per_seed), "params": params}
-            evals[algo] = results
-    finally:
-        if pool is not None:
-            pool.shutdown(cancel_futures=True)
+            record[algo] = _algo_record(results, curves, per_seed, params, ev_seeds, mpc_success, mpc_return)
     record["budget_steps"] = budgets
     record["seeds"] = seeds
     record = jsonable(record)
-    if not bl.tensorboard_available() and load is None:
-        notes = [n for n in notes if "TensorBoard" not in n]
-        notes.append("TensorBoard logging skipped: the 'tensorboard' package is not installed "
-                     "(pip install tensorboard to get logs in agents/ALGO/seedS/tb)")
     wall = time.perf_counter() - t_start
     files = {"json": str(root / "compare.json"), "report": str(root / "report.md"),
              "curves": str(root / "curves.png")}
@@ -299,10 +286,33 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
     return record | {"_files": files, "_wall_time_s": wall}
 
 
-def _fmt(v, spec=".3g") -> str:
-    if v is None or (isinstance(v, float) and not math.isfinite(v)):
-        return "-"
-    return format(v, spec)
+def _seed_record(s, r, curve, train_time, steps, loaded, mpc_success, mpc_return) -> dict:
+    from learning import baselines as bl
+
+    return {"seed": s, "success_rate": float(r.success.mean()),
+            "return_mean": float(r.returns.mean()), "return_std": float(r.returns.std()),
+            "final_error_mean": float(np.nanmean(r.final_error)),
+            "train_time_s": train_time, "num_timesteps": steps, "loaded": loaded,
+            "steps_to_match": {"success": bl.steps_to_match(curve["steps"], curve["success"], mpc_success),
+                               "return": bl.steps_to_match(curve["steps"], curve["returns"], mpc_return)}}
+
+
+def _algo_record(results, curves, per_seed, params, ev_seeds, mpc_success, mpc_return) -> dict:
+    from learning import baselines as bl
+
+    pooled = _pooled(results)
+    st, rmean, rmin, rmax = bl.mean_curve(curves, "returns")
+    _, smean, smin, smax = bl.mean_curve(curves, "success")
+    times = [p["train_time_s"] for p in per_seed if p["train_time_s"] is not None]
+    return _metrics(pooled.summary()) | {
+        "eval_seeds": ev_seeds, "per_seed": per_seed,
+        "steps_to_match": {"success": bl.steps_to_match(st, smean, mpc_success),
+                           "return": bl.steps_to_match(st, rmean, mpc_return)},
+        "curve": {"steps": st, "return_mean": rmean, "return_min": rmin, "return_max": rmax,
+                  "success_mean": smean, "success_min": smin, "success_max": smax},
+        "train_time_s": {"mean": float(np.mean(times)) if times else None, "total": float(sum(times))},
+        "num_timesteps": max(int(p["num_timesteps"] or 0) for p in per_seed),
+        "loaded": all(p["loaded"] for p in per_seed), "params": params}
 
 
 def budget_text(budgets: dict[str, int]) -> str:
@@ -345,17 +355,17 @@ def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str],
 
     def row(name, m, steps, ttime):
         r, fe = m["return"], m["final_error"]
-        return (f"| {name} | {steps} | {_fmt(r['mean'], '.1f')} ± {_fmt(r['std'], '.1f')} | "
-                f"{_fmt(m['success_rate'], '.3f')} | {_fmt(fe['mean'])} ({_fmt(fe['median'])}) | "
-                f"{_fmt(m['step_ms']['median'])} ({_fmt(m['step_ms']['p95'])}) | "
-                f"{_fmt(m['step_ms_batch1']['median'])} ({_fmt(m['step_ms_batch1']['p95'])}) | {ttime} |")
+        return (f"| {name} | {steps} | {fmt(r['mean'], '.1f')} ± {fmt(r['std'], '.1f')} | "
+                f"{fmt(m['success_rate'], '.3f')} | {fmt(fe['mean'])} ({fmt(fe['median'])}) | "
+                f"{fmt(m['step_ms']['median'])} ({fmt(m['step_ms']['p95'])}) | "
+                f"{fmt(m['step_ms_batch1']['median'])} ({fmt(m['step_ms_batch1']['p95'])}) | {ttime} |")
 
     if mpc:
         L.append(row("MPC", mpc, 0, "0 s"))
     for a in algos:
         m = rec[a]
         t = m["train_time_s"]["mean"]
-        tt = "loaded" if m["loaded"] and t is None else f"{_fmt(t, '.0f')} s" + (" (loaded)" if m["loaded"]
+        tt = "loaded" if m["loaded"] and t is None else f"{fmt(t, '.0f')} s" + (" (loaded)" if m["loaded"]
                                                                                 else "")
         L.append(row(f"{a.upper()} ({len(rec['seeds'])} seeds pooled)", m, m["num_timesteps"], tt))
     L += ["", "### Per training seed", "",
@@ -364,16 +374,16 @@ def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str],
     for a in algos:
         for p in rec[a]["per_seed"]:
             sm = p["steps_to_match"]
-            L.append(f"| {a.upper()} | {p['seed']} | {_fmt(p['return_mean'], '.1f')} ± "
-                     f"{_fmt(p['return_std'], '.1f')} | {_fmt(p['success_rate'], '.3f')} | "
-                     f"{_fmt(p['final_error_mean'])} | {_fmt(sm['success'], 'd')} | "
-                     f"{_fmt(sm['return'], 'd')} | {_fmt(p['train_time_s'], '.0f')} s |")
+            L.append(f"| {a.upper()} | {p['seed']} | {fmt(p['return_mean'], '.1f')} ± "
+                     f"{fmt(p['return_std'], '.1f')} | {fmt(p['success_rate'], '.3f')} | "
+                     f"{fmt(p['final_error_mean'])} | {fmt(sm['success'], 'd')} | "
+                     f"{fmt(sm['return'], 'd')} | {fmt(p['train_time_s'], '.0f')} s |")
     L += ["", "## RL steps to match the MPC", ""]
     if not mpc:
         L.append("No MPC reference (--no-mpc).")
     else:
-        L.append(f"MPC: success rate {_fmt(mpc['success_rate'], '.3f')}, mean return "
-                 f"{_fmt(mpc['return']['mean'], '.1f')}. First evaluated step count at which the agent's "
+        L.append(f"MPC: success rate {fmt(mpc['success_rate'], '.3f')}, mean return "
+                 f"{fmt(mpc['return']['mean'], '.1f')}. First evaluated step count at which the agent's "
                  "curve, averaged over the training seeds, reaches it:")
         L.append("")
         for a in algos:
@@ -383,7 +393,7 @@ def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str],
         L += ["", "## Goals", "",
               f"- MPC success ≥ 95 % with zero training: "
               f"{'reached' if (mpc['success_rate'] or 0) >= 0.95 else 'not reached'} "
-              f"({_fmt(100 * (mpc['success_rate'] or 0), '.1f')} %)"]
+              f"({fmt(100 * (mpc['success_rate'] or 0), '.1f')} %)"]
         for a in algos:
             sm = rec[a]["steps_to_match"]["success"]
             L.append(f"- {a.upper()} steps to match the MPC's success rate: "
@@ -475,22 +485,15 @@ def _plot(rec: dict, algos: list[str], path: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from learning.envs.single import make_task
 
-    task = make_task(args.env)
+    budgets = parse_budgets(args.budget_steps, list(args.algos), make_task(args.task))
+    log = None if args.quiet else write
     try:
-        budgets = parse_budgets(args.budget_steps, list(args.algos), task)
-    except ValueError as e:
-        print(f"liecontrol compare: error: {e}", file=sys.stderr)
-        return 2
-    if args.load is not None and not Path(args.load).is_dir():
-        print(f"liecontrol compare: error: argument --load: {args.load} is not a folder", file=sys.stderr)
-        return 2
-    log = None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
-    try:
-        rec = compare(args.env, algos=args.algos, budget_steps=budgets, seeds=args.seeds,
-                      eval_episodes=args.eval_episodes, eval_every=args.eval_every, num_envs=args.num_envs,
+        rec = compare(args.task, algos=args.algos, budget_steps=budgets, seeds=args.seeds,
+                      eval_episodes=args.eval_episodes, eval_every=args.eval_every, num_envs=args.eval_envs,
                       train_envs=args.train_envs, out=args.out, load=args.load, mpc=not args.no_mpc,
-                      mpc_horizon=args.mpc_horizon, threads=args.threads, jobs=args.jobs, log=log)
-    except (FileNotFoundError, ValueError) as e:
+                      mpc_horizon=args.mpc_horizon, threads=args.threads, jobs=args.jobs,
+                      tensorboard=args.tensorboard, log=log, quiet=args.quiet)
+    except FileNotFoundError as e:  # --load: a weights file missing in the folder
         print(f"liecontrol compare: error: {e}", file=sys.stderr)
         return 2
     files, wall = rec.pop("_files"), rec.pop("_wall_time_s")
@@ -508,9 +511,10 @@ def run(args: argparse.Namespace) -> int:
         p = Path(args.json)
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(json.dumps(rec, indent=1, allow_nan=False) + "\n")
-        files["json_arg"] = str(p)
     print(f"wrote {files['report']}, {files['curves']}, {files['json']}"
           + (f", {args.json}" if args.json else "") + f" in {wall:.0f} s")
+    if args.tensorboard:
+        print(f"TensorBoard logs: tensorboard --logdir {Path(files['json']).parent / 'agents'}")
     return 0
 
 

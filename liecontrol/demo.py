@@ -18,7 +18,8 @@
    PPO agent trained inside the demo (never downloaded; a fixed step budget), evaluated on the same
    held-out seeds by :func:`learning.evaluate` — success, return, final error, time per control step.
 
-Results are printed and written to ``OUT/demo/summary.json``; plots go to ``OUT/demo/*.png``.
+Results are printed and written to ``OUT/summary.json``; plots go to ``OUT/*.png`` (``--out``, default
+``out/demo``).  Steps 4 and 5 show progress bars on stderr (``--quiet``: none).
 """
 
 from __future__ import annotations
@@ -31,21 +32,15 @@ from pathlib import Path
 
 import torch
 
+from liecontrol import _options
+from liecontrol._progress import bar, sb3_callback
 from torchlie import se3, so3
 
 __all__ = ["add_arguments", "run", "karcher_mean_se3", "interpolation_check", "averaging_check",
            "swingup_check", "shared_bins", "cube_limits", "return_gap_note"]
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--out", default="out", help="output folder (default: out)")
-    p.add_argument("--pairs", type=int, default=4096, help="pose pairs interpolated at once")
-    p.add_argument("--clouds", type=int, default=256, help="independent pose clouds averaged at once")
-    p.add_argument("--pendulums", type=int, default=64, help="pendulums swung up at once")
-    p.add_argument("--envs", type=int, default=256, help="batched environments of the MPC-vs-RL comparison")
-    p.add_argument("--ppo-steps", type=int, default=32768, help="PPO training budget (environment steps)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
+add_arguments = _options.demo
 
 
 def karcher_mean_se3(X: torch.Tensor, iters: int = 10, tol: float = 1e-12) -> tuple[torch.Tensor, int]:
@@ -123,8 +118,9 @@ def _swingup_problem(x0: torch.Tensor, T: int, length):
     return ILQRProblem(Pendulum(length=length, damping=0.1, dt=0.05), cost, x0, T, u_lower=-3.0, u_upper=3.0)
 
 
-def swingup_check(batch: int, gen: torch.Generator, T: int = 100) -> dict:
-    """Control-limited iLQR swing-up of ``batch`` pendulums and d(cost)/d(length) two ways."""
+def swingup_check(batch: int, gen: torch.Generator, T: int = 100, quiet: bool = True) -> dict:
+    """Control-limited iLQR swing-up of ``batch`` pendulums and d(cost)/d(length) two ways (a progress bar
+    over the three solves unless ``quiet``)."""
     from controllers.ilqr import ILQROptions, ilqr
 
     x0 = 0.5 * (torch.rand(batch, 2, generator=gen, dtype=torch.float64) - 0.5)
@@ -132,14 +128,18 @@ def swingup_check(batch: int, gen: torch.Generator, T: int = 100) -> dict:
     opts = ILQROptions(max_iter=300, tol=1e-11, tol_cost=0.0)
     # one length per pendulum, so one backward pass gives every element's own derivative
     length = torch.ones(batch, dtype=torch.float64, requires_grad=True)
+    progress = bar(3, "[4] iLQR solves (swing-up, then length +-h)", quiet, unit="solve")
     t0 = time.perf_counter()
     sol = ilqr(_swingup_problem(x0, T, length), options=opts)
     elapsed = time.perf_counter() - t0
+    progress.update()
     (grad,) = torch.autograd.grad(sol.cost.sum(), length)
     h = 1e-5
     with torch.no_grad():
         plus, minus = (ilqr(_swingup_problem(x0, T, length.detach() + s * h), options=opts, grad="none").cost
                        for s in (1, -1))
+        progress.update(2)
+    progress.close()
     fd = (plus - minus) / (2 * h)
     rel = (grad - fd).abs() / fd.abs().clamp_min(1e-12)
     x = sol.x.detach()
@@ -156,14 +156,15 @@ def swingup_check(batch: int, gen: torch.Generator, T: int = 100) -> dict:
 _EVAL_SEED = 1_000_000  # held-out evaluation seeds: disjoint from every training seed of learning.baselines
 
 
-def mpc_vs_rl(envs: int, ppo_steps: int, seed: int = 0) -> dict:
+def mpc_vs_rl(envs: int, ppo_steps: int, seed: int = 0, quiet: bool = True) -> dict:
     """The MPC expert (zero training) and a PPO agent trained here for ``ppo_steps`` steps, evaluated on
-    the same ``envs`` held-out pendulum swing-ups in one batch each (section 5 of the module docstring)."""
+    the same ``envs`` held-out pendulum swing-ups in one batch each (section 5 of the module docstring);
+    progress bars of the evaluations and the training unless ``quiet``."""
     from learning.baselines import make_agent
     from learning.evaluate import evaluate
 
     task = "PendulumSwingUp"
-    kw = dict(num_envs=envs, episodes=envs, seed=_EVAL_SEED, progress=False)
+    kw = dict(num_envs=envs, episodes=envs, seed=_EVAL_SEED, progress=not quiet)
     t0 = time.perf_counter()
     mpc = evaluate("mpc", task, **kw)
     t_mpc = time.perf_counter() - t0
@@ -172,7 +173,8 @@ def mpc_vs_rl(envs: int, ppo_steps: int, seed: int = 0) -> dict:
     torch.set_num_threads(1)  # SB3's small networks train fastest on one thread (measured)
     try:
         agent = make_agent("ppo", task, seed=seed)
-        agent.learn(total_timesteps=ppo_steps)
+        with bar(ppo_steps, "[5] PPO training", quiet) as progress:
+            agent.learn(total_timesteps=ppo_steps, callback=sb3_callback(progress))
     finally:
         torch.set_num_threads(threads)
     t_train = time.perf_counter() - t0
@@ -350,7 +352,7 @@ def _plot(out: Path, interp: dict, avg: dict, swing: dict | None = None, duel: d
 
 
 def run(args: argparse.Namespace) -> int:
-    out = Path(args.out) / "demo"
+    out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     gen = torch.Generator().manual_seed(args.seed)
     interp = interpolation_check(args.pairs, 64, gen)
@@ -365,7 +367,7 @@ def run(args: argparse.Namespace) -> int:
     edges = edge_check()
     print(f"[3] exp(log(X)) round trip at angles 0, 1e-9, 1e-4, pi-1e-9, pi: float32 {edges['float32']:.1e}, "
           f"float64 {edges['float64']:.1e}")
-    swing = swingup_check(args.pendulums, gen)
+    swing = swingup_check(args.pendulums, gen, quiet=args.quiet)
     print(f"[4] control-limited iLQR swing-up of {swing['batch']} pendulums (|u| <= 3, T = {swing['T']}): "
           f"{swing['upright']}/{swing['batch']} upright at the end, {swing['converged']} converged, "
           f"max |u| {swing['max_abs_u']:.3f}, {100 * swing['clamped_fraction']:.0f} % of controls on a "
@@ -373,7 +375,9 @@ def run(args: argparse.Namespace) -> int:
           f"differences: median rel. err. {swing['grad_length_median_rel_err']:.1e}, "
           f"{swing['grad_length_agree_1e-6']}/{swing['batch']} agree to 1e-6 (e.g. "
           f"{swing['grad_length_example'][0]:.4f} vs {swing['grad_length_example'][1]:.4f})")
-    duel = mpc_vs_rl(args.envs, args.ppo_steps, args.seed)
+    print(f"[5] MPC vs RL: the MPC expert and PPO (trained here for {args.budget_steps} steps) on "
+          f"{args.num_envs} batched pendulum swing-ups", flush=True)
+    duel = mpc_vs_rl(args.num_envs, args.budget_steps, args.seed, quiet=args.quiet)
     print(f"[5] MPC vs RL on {duel['envs']} batched pendulum swing-ups (same held-out seeds; PPO trained "
           f"here for {duel['ppo_steps']} steps in {duel['ppo_train_s']:.0f} s):")
     print("    policy  success  return (mean ± std)  final |angle| (median)  ms per batched step")
@@ -382,12 +386,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"    {name.upper():<6}  {100 * m['success_rate']:5.1f} %  {m['return_mean']:8.1f} ± "
               f"{m['return_std']:<8.1f}  {m['final_error_median']:.1e}                 "
               f"{m['step_ms_median']:.2f}")
+    note = return_gap_note(duel)
+    if note is not None:
+        print(f"    {note}")
     summary = {"interpolation": {k: v for k, v in interp.items() if not k.startswith("_")},
                "averaging": {k: v for k, v in avg.items() if not k.startswith("_")},
                "roundtrip_edges": edges,
                "swingup": {k: v for k, v in swing.items() if not k.startswith("_")},
                "mpc_vs_rl": {k: v for k, v in duel.items() if not k.startswith("_")}}
-    files = [] if args.no_plot else _plot(out, interp, avg, swing, duel)
+    files = [] if args.no_plots else _plot(out, interp, avg, swing, duel)
     (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
     for f in files + [str(out / "summary.json")]:
         print(f"wrote {f}")

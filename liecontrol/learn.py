@@ -1,18 +1,19 @@
 """``liecontrol learn``: learning *with* the differentiable MPC (issue 12 §5-§6), measured and reported.
 
-``liecontrol learn mpc-ppo ENV``
+``liecontrol learn mpc-ppo TASK``
     PPO with the MPC-headed policy (:class:`learning.mpc_policy.MPCActorCriticPolicy`: observation → cost
     network → iLQR MPC → action; untrained it *is* the task's MPC) against plain PPO (``MlpPolicy``, the
     task's tuned settings) at **equal environment steps** and at **equal training wall time** (plain PPO
     trained until its own training clock reaches the MPC-headed run's), per training seed, all evaluated on
     the same held-out episodes (:func:`learning.evaluate`); with the per-step compute of each policy at
-    batch 1 and their ratio.  Writes ``OUT/ENV/report.md``, ``curves.png`` and ``learn.json``.
+    batch 1 and their ratio.  Writes ``report.md``, ``curves.png`` and ``learn.json`` into ``--out`` (default
+    ``out/learn/TASK``); with ``--tensorboard`` also each run's agent and TensorBoard logs under ``agents/``.
 
-``liecontrol learn bc ENV``
+``liecontrol learn bc TASK``
     Behaviour cloning from the task's MPC expert (:func:`learning.bc.bc_study`): an MLP policy and,
     separately, the MPC layer's cost weights learned from 1, 2, 5, … expert episodes; held-out action
-    error and closed-loop success against the number of demonstrations.  Writes ``OUT/ENV/bc.md``,
-    ``bc.png`` and ``bc.json``.
+    error and closed-loop success against the number of demonstrations.  Writes ``bc.md``, ``bc.png`` and
+    ``bc.json`` into ``--out`` (default ``out/learn/TASK``).
 
 JSON of ``mpc-ppo``: ``{"env", "steps", "seeds", "eval_seeds", "mpc_ppo": [per seed],
 "ppo_equal_steps": [...], "ppo_equal_time": [...], "step_ms_batch1": {"mpc_ppo", "ppo", "ratio"}}``,
@@ -24,17 +25,17 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from liecontrol.compare import resolve_env
-from liecontrol.report import markdown_cell, positive_int, print_table, restores_threads
+from liecontrol._args import task_name as resolve_env
+from liecontrol._progress import TrainingProgress, write
+from liecontrol.report import markdown_cell, print_table, restores_threads
 
-__all__ = ["mpc_ppo", "bc", "add_arguments", "run"]
+__all__ = ["mpc_ppo", "bc", "run"]
 
 
 def _record(res, ev) -> dict:
@@ -66,9 +67,12 @@ def _mpc_ppo_params(task) -> dict:
 
 @restores_threads
 def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 16, horizon: int | None = None,
-            max_iter: int = 5, out: str | Path = "out/learn", threads: int = 1, log=None) -> dict:
-    """Run the comparison of the module docstring and write its files; returns the JSON record (plus
-    ``"_files"``)."""
+            max_iter: int = 5, out: str | Path | None = None, threads: int = 1, log=None,
+            tensorboard: bool = False, quiet: bool = True) -> dict:
+    """Run the comparison of the module docstring and write its files into ``out`` (default
+    ``out/learn/TASK``); returns the JSON record (plus ``"_files"``).  With ``tensorboard`` every run is
+    saved and logs to TensorBoard in ``out/agents/RUN/seedS/`` (RUN: ``mpc_ppo``, ``ppo_equal_steps``,
+    ``ppo_equal_time``).  Progress bars on stderr unless ``quiet``; ``log(line)`` gets the progress lines."""
     from learning import baselines as bl
     from learning.envs.single import make_task
     from learning.evaluate import evaluate
@@ -86,34 +90,42 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
                  "eval_seeds": ev_seeds, "mpc_policy_kwargs": dict(pk),
                  "mpc_ppo_params": _mpc_ppo_params(task), "mpc_ppo": [], "ppo_equal_steps": [],
                  "ppo_equal_time": []}
+    root = Path(out) if out is not None else Path("out/learn") / task.name
     last = {}
     for s in seeds:
+        progress = TrainingProgress({"mpc_ppo": steps, "ppo_equal_steps": steps, "ppo_equal_time": None},
+                                    quiet=quiet, label=lambda k, s=s: f"{task.name} {k} seed {s}", log=log)
+
+        def kw(run: str, progress=progress, s=s) -> dict:  # logging; TensorBoard beside the saved agent
+            d = dict(log=lambda line: progress.line(run, line), tensorboard=tensorboard)
+            return d | ({"out_dir": root / "agents" / run / f"seed{s}"} if tensorboard else {})
+
         say(f"{task.name} seed {s}: PPO with the MPC-headed policy, {steps} steps")
-        r = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes, log=log,
+        r = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes,
                      params=dict(rec["mpc_ppo_params"]), policy=MPCActorCriticPolicy, policy_kwargs=pk,
-                     tensorboard=False)
+                     **kw("mpc_ppo"))
         ev = evaluate(r.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=False, timing_batch1=True)
+                      progress=not quiet, timing_batch1=True)
         rec["mpc_ppo"].append(_record(r, ev))
         last["mpc_ppo"] = ev
         say(f"{task.name} seed {s}: plain PPO, {steps} steps")
-        p = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes, log=log,
-                     tensorboard=False)
+        p = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes,
+                     **kw("ppo_equal_steps"))
         ev = evaluate(p.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=False, timing_batch1=True)
+                      progress=not quiet, timing_batch1=True)
         rec["ppo_equal_steps"].append(_record(p, ev))
         last["ppo"] = ev
         budget_s = r.train_time_s
         say(f"{task.name} seed {s}: plain PPO for the MPC-headed run's training time, {budget_s:.0f} s")
         q = bl.train("ppo", task, 10**9, seed=s, eval_every=max(every, 4096), eval_episodes=eval_episodes,
-                     log=log, tensorboard=False, max_train_s=budget_s)
+                     max_train_s=budget_s, **kw("ppo_equal_time"))
+        progress.close()
         ev = evaluate(q.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=False, timing_batch1=False)
+                      progress=not quiet, timing_batch1=False)
         rec["ppo_equal_time"].append(_record(q, ev))
     a = float(np.median(last["mpc_ppo"].step_ms_batch1))
     b = float(np.median(last["ppo"].step_ms_batch1))
     rec["step_ms_batch1"] = {"mpc_ppo": a, "ppo": b, "ratio": a / b}
-    root = Path(out) / task.name
     root.mkdir(parents=True, exist_ok=True)
     files = {"json": str(root / "learn.json"), "report": str(root / "report.md"),
              "curves": str(root / "curves.png")}
@@ -173,9 +185,10 @@ def _plot(rec: dict, path: str) -> None:
 
 @restores_threads
 def bc(env, *, counts=(1, 2, 5, 10), heldout: int = 5, eval_episodes: int = 16, mlp_epochs: int = 200,
-       mpc_steps: int = 60, out: str | Path = "out/learn", threads: int = 1, log=None,
+       mpc_steps: int = 60, out: str | Path | None = None, threads: int = 1, log=None,
        mlp_kwargs: dict | None = None, mpc_kwargs: dict | None = None, **study_kwargs) -> dict:
-    """The behaviour-cloning study of the module docstring; returns ``{"env", "records", "_files"}``.
+    """The behaviour-cloning study of the module docstring, written into ``out`` (default
+    ``out/learn/TASK``); returns ``{"env", "records", "_files"}``.
     ``env`` is a task name or a :class:`~learning.envs.task.Task`; ``mlp_kwargs``/``mpc_kwargs`` add to the
     learners' settings and ``study_kwargs`` go to :func:`learning.bc.bc_study` (``expert``, ``num_envs``)."""
     from learning.bc import bc_study
@@ -187,7 +200,7 @@ def bc(env, *, counts=(1, 2, 5, 10), heldout: int = 5, eval_episodes: int = 16, 
     recs = bc_study(task, list(counts), heldout_episodes=heldout, eval_episodes=eval_episodes,
                     mlp_kwargs={"epochs": mlp_epochs, **(mlp_kwargs or {})},
                     mpc_kwargs={"steps": mpc_steps, **(mpc_kwargs or {})}, log=log, **study_kwargs)
-    root = Path(out) / name
+    root = Path(out) if out is not None else Path("out/learn") / name
     root.mkdir(parents=True, exist_ok=True)
     files = {"json": str(root / "bc.json"), "report": str(root / "bc.md"), "plot": str(root / "bc.png")}
     rec = {"env": name, "records": recs}
@@ -230,43 +243,23 @@ def _plot_bc(recs: list[dict], name: str, path: str) -> None:
     plt.close(fig)
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("what", choices=["mpc-ppo", "bc"],
-                        help="mpc-ppo: MPC-headed PPO vs PPO; bc: behaviour cloning from the MPC expert")
-    parser.add_argument("env", metavar="ENV", type=resolve_env, help="task name or liecontrol/<name>-v0")
-    parser.add_argument("--steps", type=positive_int, default=20_000,
-                        help="mpc-ppo: environment steps per seed")
-    parser.add_argument("--seeds", nargs="+", type=int, default=[0], help="mpc-ppo: training seeds")
-    parser.add_argument("--horizon", type=positive_int, default=None, help="mpc-ppo: MPC head horizon")
-    parser.add_argument("--max-iter", type=positive_int, default=5, help="mpc-ppo: iLQR iterations per call")
-    parser.add_argument("--counts", default="1,2,5,10", help="bc: expert episodes, comma-separated")
-    parser.add_argument("--eval-episodes", type=positive_int, default=16, help="held-out evaluation episodes")
-    parser.add_argument("--out", default="out/learn", help="output root (writes OUT/ENV/...)")
-    parser.add_argument("--json", default=None, metavar="PATH", help="also write the JSON record here")
-    parser.add_argument("--quiet", action="store_true", help="no progress lines on stderr")
-
-
 def run(args: argparse.Namespace) -> int:
-    log = None if args.quiet else (lambda s: print(s, file=sys.stderr, flush=True))
+    log = None if args.quiet else write
     t0 = time.perf_counter()
-    if args.what == "mpc-ppo":
-        rec = mpc_ppo(args.env, steps=args.steps, seeds=args.seeds, eval_episodes=args.eval_episodes,
-                      horizon=args.horizon, max_iter=args.max_iter, out=args.out, log=log)
+    if args.subcommand == "mpc-ppo":
+        rec = mpc_ppo(args.task, steps=args.budget_steps, seeds=args.seeds, eval_episodes=args.eval_episodes,
+                      horizon=args.mpc_horizon, max_iter=args.max_iter, out=args.out, threads=args.threads,
+                      log=log, tensorboard=args.tensorboard, quiet=args.quiet)
         print_table(_rows(rec), ["policy", "seed", "steps", "train_s", "return_mean", "return_std",
                                  "success"])
         t = rec["step_ms_batch1"]
         print(f"per-step compute at batch 1: MPC head {t['mpc_ppo']:.3g} ms, MLP {t['ppo']:.3g} ms "
               f"({t['ratio']:.0f}x)")
     else:
-        try:
-            counts = [int(c) for c in args.counts.split(",")]
-        except ValueError:
-            counts = []
-        if not counts or min(counts) < 1:
-            print(f"liecontrol learn: error: argument --counts: expected positive ints like 1,2,5, got "
-                  f"{args.counts!r}", file=sys.stderr)
-            return 2
-        rec = bc(args.env, counts=counts, eval_episodes=args.eval_episodes, out=args.out, log=log)
+        rec = bc(args.task, counts=args.demos, heldout=args.heldout_episodes,
+                 eval_episodes=args.eval_episodes,
+                 mlp_epochs=args.mlp_epochs, mpc_steps=args.mpc_steps, out=args.out, threads=args.threads,
+                 log=log)
         print_table(rec["records"], ["learner", "demos", "heldout_mse", "success_rate", "return_mean"])
     files = rec.pop("_files")
     if args.json:
@@ -274,4 +267,6 @@ def run(args: argparse.Namespace) -> int:
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text(json.dumps(rec, indent=1, allow_nan=False) + "\n")
     print(f"wrote {', '.join(files.values())} in {time.perf_counter() - t0:.0f} s")
+    if getattr(args, "tensorboard", False):
+        print(f"TensorBoard logs: tensorboard --logdir {Path(files['json']).parent / 'agents'}")
     return 0

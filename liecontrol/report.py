@@ -7,7 +7,6 @@ in the same run, with each side timed as the median of several runs after warm-u
 
 from __future__ import annotations
 
-import argparse
 import functools
 import json
 import math
@@ -18,8 +17,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["time_ms", "print_table", "write_json", "sync", "restores_threads", "positive_int",
-           "positive_float", "public", "write_result", "markdown_cell", "quantile_band"]
+__all__ = ["time_ms", "fmt", "print_table", "write_json", "sync", "restores_threads", "public",
+           "write_result", "markdown_cell", "quantile_band"]
 
 
 def sync(device: torch.device | str | None = None) -> None:
@@ -53,12 +52,17 @@ def time_ms(fn: Callable[[], object], repeats: int = 7, warmup: int = 2,
     return statistics.median(samples)
 
 
-def _fmt(v: object) -> str:
+def fmt(v: object, spec: str | None = None, missing: str = "-") -> str:
+    """The one number formatter of the reports: ``missing`` for ``None``; with ``spec``,
+    ``format(v, spec)``; else a float to 3 significant digits (``1.23e-05`` below 0.01 and from 1e5 on,
+    no decimals from 100 on) and anything else by ``str``."""
     if v is None:
-        return "-"
+        return missing
+    if spec is not None:
+        return format(v, spec)
     if isinstance(v, float):
-        if v != v:
-            return "nan"
+        if not math.isfinite(v):
+            return str(v)
         if v == 0:
             return "0"
         a = abs(v)
@@ -68,7 +72,7 @@ def _fmt(v: object) -> str:
 
 def print_table(rows: Sequence[dict], columns: Sequence[str], file=None) -> None:
     """Print ``rows`` (dicts) as an aligned text table with the given columns."""
-    cells = [[c for c in columns]] + [[_fmt(r.get(c)) for c in columns] for r in rows]
+    cells = [[c for c in columns]] + [[fmt(r.get(c)) for c in columns] for r in rows]
     widths = [max(len(row[i]) for row in cells) for i in range(len(columns))]
     for k, row in enumerate(cells):
         print("  ".join(s.rjust(w) for s, w in zip(row, widths)), file=file)
@@ -97,22 +101,6 @@ def restores_threads(fn):
     return wrapper
 
 
-def positive_int(s: str) -> int:
-    """argparse type: a positive integer."""
-    v = int(s)
-    if v < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {s}")
-    return v
-
-
-def positive_float(s: str) -> float:
-    """argparse type: a positive finite number."""
-    v = float(s)
-    if not (v > 0 and math.isfinite(v)):
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {s}")
-    return v
-
-
 def public(result: dict) -> dict:
     """``result`` without its private entries (keys starting with ``_``: raw curves for the figures)."""
     return {k: v for k, v in result.items() if not k.startswith("_")}
@@ -127,10 +115,8 @@ def write_result(path: str | Path, data: dict) -> Path:
 
 
 def markdown_cell(v) -> str:
-    """A table cell of a ``report.md``: floats to 3 significant digits, ``None`` empty."""
-    if isinstance(v, float):
-        return f"{v:.3g}" if math.isfinite(v) else str(v)
-    return "" if v is None else str(v)
+    """A table cell of a ``report.md``: :func:`fmt`, empty for ``None``."""
+    return fmt(v, missing="")
 
 
 def quantile_band(curves, lo: float = 10, hi: float = 90):

@@ -62,8 +62,8 @@ def _args(*extra):
 def test_bench_ilqr_crocoddyl_smoke(tmp_path, capsys):
     out = tmp_path / "ilqr.json"
     # the mpc.pytorch environment is pointed at nothing: only crocoddyl runs
-    args = _args("--problems", "pendulum", "cartpole", "--json", str(out), "--anchor-python",
-                 str(tmp_path / "no-python"))
+    args = _args("--problems", "pendulum", "cartpole", "--json", str(out))
+    args.anchor_python = str(tmp_path / "no-python")  # (the command line refuses a missing file)
     assert bench.run(args) == 0
     printed = capsys.readouterr().out
     assert "crocoddyl model check" in printed
@@ -106,7 +106,8 @@ def test_bench_ilqr_crocoddyl_refuses_another_model():
 
 def test_bench_ilqr_crocoddyl_missing(tmp_path):
     """A missing crocoddyl interpreter is a reported row, not a crash."""
-    args = _args("--croc-python", str(tmp_path / "no-python"))
+    args = _args()
+    args.croc_python = str(tmp_path / "no-python")  # (the command line refuses a missing file)
     from controllers.ilqr import ILQROptions
 
     rec = bench._croc_compare("pendulum", "pendulum swing-up", bench._x0("pendulum", 2, 0), 8, args,

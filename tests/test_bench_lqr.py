@@ -34,8 +34,9 @@ def test_bench_lqr_pypose_smoke(tmp_path):
     out = tmp_path / "lqr.json"
     parser = __import__("argparse").ArgumentParser()
     bench.add_arguments(parser)
-    args = parser.parse_args(["--B", "4", "--T", "6", "--n", "3", "--m", "2", "--repeats", "1",
-                              "--anchors", "pypose,plain", "--no-fused", "--json", str(out)])
+    args = parser.parse_args(["--batch", "4", "--horizon", "6", "--state-dim", "3", "--control-dim", "2",
+                              "--repeats", "1", "--anchors", "pypose,plain", "--no-fused", "--json",
+                              str(out)])
     assert bench.run(args) == 0
     _check(json.loads(out.read_text()), ["pypose", "plain-riccati"])
 

@@ -33,11 +33,14 @@ def test_console_script_entry_point_runs():
     assert r.returncode == 0 and "lie" in r.stdout
 
 
-def test_demo_reaches_its_accuracy(tmp_path, capsys):
+def test_demo_reaches_its_accuracy(tmp_path, capsys, monkeypatch):
+    from liecontrol import demo
+
+    monkeypatch.setattr(demo, "return_gap_note", lambda duel, horizon=None: "NOTE: why the returns differ")
     args = ["demo", "--out", str(tmp_path), "--pairs", "64", "--clouds", "8", "--pendulums", "4",
-            "--envs", "6", "--ppo-steps", "64"]
+            "--num-envs", "6", "--budget-steps", "64", "--quiet"]
     assert cli.main(args) == 0
-    summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+    summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["interpolation"]["twist_constancy_err"] < 1e-10
     assert summary["averaging"]["karcher_err_max"] < 1e-10
     # the naive projected matrix average is biased; the Karcher mean is not
@@ -51,13 +54,17 @@ def test_demo_reaches_its_accuracy(tmp_path, capsys):
     assert duel["envs"] == 6 and duel["ppo_steps"] >= 64  # SB3 collects whole rollouts
     assert duel["mpc"]["success_rate"] == 1.0 and duel["mpc"]["final_error_median"] < 1e-3  # no training
     assert duel["mpc"]["invalid"] == duel["ppo"]["invalid"] == 0
+    # demo.return_gap_note's line (tests/test_plots.py: when and what) is printed right after the table
+    lines = capsys.readouterr().out.splitlines()
+    ppo_row = next(i for i, line in enumerate(lines) if line.strip().startswith("PPO "))
+    assert lines[ppo_row + 1].strip() == "NOTE: why the returns differ"
     for name in ("se3_interpolation.png", "se3_averaging.png", "pendulum_swingup.png", "mpc_vs_ppo.png"):
-        assert (tmp_path / "demo" / name).stat().st_size > 1000
+        assert (tmp_path / name).stat().st_size > 1000
 
 
 def test_bench_lie_writes_records(tmp_path):
     path = tmp_path / "lie.json"
-    assert cli.main(["bench", "lie", "--batch", "8", "--dtype", "float64", "--ops", "exp", "log",
+    assert cli.main(["bench", "lie", "--batches", "8", "--dtypes", "float64", "--ops", "exp", "log",
                      "--repeats", "1", "--no-compile", "--json", str(path)]) == 0
     recs = json.loads(path.read_text())
     keys = {"group", "op", "dtype", "batch", "ours_ms", "anchor", "anchor_ms", "speedup", "roundtrip_err"}
@@ -75,7 +82,7 @@ def test_bench_lie_log_rows_compare_like_with_like(tmp_path):
     """log_quat: a quaternion on every side (so3 only); log_mat: a matrix on every side, pypose's time
     including its own matrix -> quaternion conversion; every record says what each side was given."""
     path = tmp_path / "lie.json"
-    assert cli.main(["bench", "lie", "--batch", "16", "--dtype", "float32", "--ops", "log", "log_quat",
+    assert cli.main(["bench", "lie", "--batches", "16", "--dtypes", "float32", "--ops", "log", "log_quat",
                      "log_mat", "--repeats", "1", "--no-compile", "--json", str(path)]) == 0
     recs = json.loads(path.read_text())
     ops = {(r["group"], r["op"]) for r in recs}

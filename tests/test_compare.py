@@ -19,7 +19,7 @@ TINY = ["--budget-steps", "256", "--eval-episodes", "2", "--eval-every", "128", 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory):
     out = tmp_path_factory.mktemp("compare")
-    args = ["compare", TASK, "--algos", "ppo", "sac", "--seeds", "0", "1", "2", "--out", str(out),
+    args = ["compare", TASK, "--algos", "ppo", "sac", "--seeds", "0", "1", "2", "--out", str(out / TASK),
             "--json", str(out / "record.json"), *TINY]
     assert cli.main(args) == 0
     return out
@@ -97,7 +97,7 @@ def test_load_reuses_the_weights_without_training(trained, tmp_path):
     assert cli.main(args) == 0
     rec = json.loads((tmp_path / "r.json").read_text())
     assert rec["mpc"] is None
-    assert not (tmp_path / TASK / "agents").exists()  # nothing trained, nothing saved
+    assert not (tmp_path / "agents").exists()  # nothing trained, nothing saved
     for algo in ("ppo", "sac"):
         assert rec[algo]["loaded"] and all(p["loaded"] for p in rec[algo]["per_seed"])
         assert rec[algo]["curve"] == first[algo]["curve"]  # the saved curves, not recomputed
@@ -129,10 +129,11 @@ def test_unknown_env_and_bad_budget_name_the_argument(capsys, tmp_path):
         cli.main(["compare", "NoSuchTask"])
     assert e.value.code == 2
     err = capsys.readouterr().err
-    assert "ENV" in err and "NoSuchTask" in err and "PendulumSwingUp" in err
-    assert cli.main(["compare", "liecontrol/PendulumSwingUp-v0", "--budget-steps", "dqn=5", "--out",
-                     str(tmp_path)]) == 2
-    assert "--budget-steps" in capsys.readouterr().err
+    assert "TASK" in err and "NoSuchTask" in err and "PendulumSwingUp" in err
+    with pytest.raises(SystemExit) as e:
+        cli.main(["compare", "liecontrol/PendulumSwingUp-v0", "--budget-steps", "dqn=5", "--out",
+                  str(tmp_path)])
+    assert e.value.code == 2 and "--budget-steps" in capsys.readouterr().err
 
 
 def test_defaults_and_budget_parsing():
@@ -161,12 +162,38 @@ def test_agents_trained_in_worker_processes_equal_those_trained_in_process(train
     for a, b in zip(one, many):
         assert a["seed"] == b["seed"] and a["num_timesteps"] == b["num_timesteps"]
         assert a["return_mean"] == b["return_mean"] and a["success_rate"] == b["success_rate"]
-    assert "1 training process" in (tmp_path / TASK / "report.md").read_text()
+    assert "1 training process" in (tmp_path / "report.md").read_text()
     jobs = min(os.cpu_count(), 6)  # six agents in the fixture
     assert f"{jobs} training process" in (trained / TASK / "report.md").read_text()
 
 
 def test_bad_jobs_is_refused(tmp_path):
-    with pytest.raises(ValueError, match="--jobs"):
+    with pytest.raises(ValueError, match="'jobs'"):
         from liecontrol.compare import compare
         compare(TASK, jobs=0, out=tmp_path, mpc=False)
+
+
+def test_learning_curve_points_before_training_after_each_multiple_and_at_the_end(trained):
+    """Each saved curve: a point before training (0 steps), at the first rollout boundary at or past each
+    multiple of --eval-every (the policy then is the one updated on exactly that many steps), and after
+    the last step."""
+    every = int(TINY[TINY.index("--eval-every") + 1])
+    for algo in ("ppo", "sac"):
+        meta = bl.read_agent_meta(trained / TASK / "agents" / algo / "seed0" / "policy.pt")
+        steps, last, p = meta["curve"]["steps"], meta["num_timesteps"], meta["params"]
+        rollout = p.get("n_envs", 1) * (p["n_steps"] if algo == "ppo" else p.get("train_freq", 1))
+        assert steps[0] == 0 and steps[-1] == last and steps == sorted(set(steps))
+        for m in range(every, last, every):
+            assert any(m <= s < m + rollout for s in steps), (algo, m, steps)
+
+
+def test_workers_report_their_progress_to_the_command(tmp_path, capsys):
+    """With worker processes (--jobs 2), each agent's evaluation lines reach the command (a queue) and
+    move its progress bar to the budget."""
+    args = ["compare", TASK, "--algos", "sac", "--seeds", "0", "1", "--no-mpc", "--jobs", "2", "--out",
+            str(tmp_path), *[a for a in TINY if a != "--quiet"]]
+    assert cli.main(args) == 0
+    err = capsys.readouterr().err
+    for s in (0, 1):
+        assert f"{TASK} sac seed {s}: 128 steps, eval return" in err  # a line logged in a worker
+        assert f"{TASK} sac seed {s}: 100%" in err and "256/256" in err  # its bar, full

@@ -22,11 +22,11 @@ def test_train_stops_at_its_wall_time_budget():
 
 def test_mpc_ppo_command_writes_report_and_json(tmp_path):
     out = tmp_path / "learn"
-    args = ["learn", "mpc-ppo", TASK, "--steps", "64", "--eval-episodes", "2", "--horizon", "5",
+    args = ["learn", "mpc-ppo", TASK, "--budget-steps", "64", "--eval-episodes", "2", "--mpc-horizon", "5",
             "--max-iter", "1", "--out", str(out), "--json", str(tmp_path / "r.json"), "--quiet"]
     assert cli.main(args) == 0
     rec = json.loads((tmp_path / "r.json").read_text())
-    assert rec == json.loads((out / TASK / "learn.json").read_text())
+    assert rec == json.loads((out / "learn.json").read_text())
     assert rec["env"] == TASK and rec["steps"] == 64 and rec["seeds"] == [0]
     assert rec["eval_seeds"] == bl.eval_seeds(2)
     assert rec["mpc_policy_kwargs"] == {"task": TASK, "max_iter": 1, "horizon": 5}
@@ -39,9 +39,9 @@ def test_mpc_ppo_command_writes_report_and_json(tmp_path):
         assert r["curve"]["steps"][0] == 0
     t = rec["step_ms_batch1"]
     assert t["mpc_ppo"] > 0 and t["ppo"] > 0 and t["ratio"] == pytest.approx(t["mpc_ppo"] / t["ppo"])
-    report = (out / TASK / "report.md").read_text()
+    report = (out / "report.md").read_text()
     assert "equal steps" in report and "equal time" in report and "Per-step compute" in report
-    assert (out / TASK / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (out / "curves.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_bc_command_writes_the_study(tmp_path):
@@ -52,7 +52,7 @@ def test_bc_command_writes_the_study(tmp_path):
     rec = learn.bc(task, counts=(1,), heldout=1, eval_episodes=2, mlp_epochs=2, mpc_steps=1, out=tmp_path,
                    expert=MPCExpert(task, horizon=6), num_envs=2, mlp_kwargs={"hidden": (8,)},
                    mpc_kwargs={"horizon": 6, "window": 6})
-    d = tmp_path / TASK
+    d = tmp_path
     saved = json.loads((d / "bc.json").read_text())
     assert saved["env"] == TASK
     pairs = [(r["learner"], r["demos"]) for r in saved["records"]]
@@ -63,12 +63,13 @@ def test_bc_command_writes_the_study(tmp_path):
 
 
 def test_bad_arguments_exit_2(capsys):
-    assert cli.main(["learn", "bc", TASK, "--counts", "a,b", "--quiet"]) == 2
-    assert "--counts" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        cli.main(["learn", "mpc-ppo", "NoSuchTask"])
-    with pytest.raises(SystemExit):
-        cli.main(["learn", "mpc-ppo", TASK, "--steps", "0"])
+    for argv in (["learn", "bc", TASK, "--demos", "a", "b"], ["learn", "bc", TASK, "--demos", "-1", "2"],
+                 ["learn", "mpc-ppo", "NoSuchTask"], ["learn", "mpc-ppo", TASK, "--budget-steps", "0"]):
+        with pytest.raises(SystemExit) as e:
+            cli.main(argv)
+        assert e.value.code == 2
+        err = capsys.readouterr().err
+        assert ("--demos" if "--demos" in argv else "--budget-steps" if "0" in argv else "TASK") in err
 
 
 def test_mpc_head_ppo_settings_cap_the_learning_rate_and_drop_gsde():
@@ -82,3 +83,24 @@ def test_mpc_head_ppo_settings_cap_the_learning_rate_and_drop_gsde():
     assert "use_sde" in plain and "use_sde" not in head and "sde_sample_freq" not in head
     assert {k: v for k, v in head.items() if k != "learning_rate"} == \
         {k: v for k, v in plain.items() if k not in ("learning_rate", "use_sde", "sde_sample_freq")}
+
+
+def test_tensorboard_flag_reaches_training(tmp_path, monkeypatch):
+    """``learn mpc-ppo --tensorboard``: every run is trained with TensorBoard on, beside its saved agent in
+    OUT/agents/RUN/seedS (checked on the arguments train receives: tensorboard is not a dependency)."""
+    import liecontrol.learn as learn
+
+    seen = []
+
+    def fake_train(*a, **kw):
+        seen.append(kw)
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(bl, "train", fake_train)
+    with pytest.raises(RuntimeError, match="stop"):
+        learn.mpc_ppo(TASK, steps=64, out=tmp_path, tensorboard=True)
+    assert seen[0]["tensorboard"] is True and seen[0]["out_dir"] == tmp_path / "agents" / "mpc_ppo" / "seed0"
+    seen.clear()
+    with pytest.raises(RuntimeError, match="stop"):
+        learn.mpc_ppo(TASK, steps=64, out=tmp_path)
+    assert seen[0]["tensorboard"] is False and "out_dir" not in seen[0]

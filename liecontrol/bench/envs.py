@@ -23,33 +23,18 @@ import time
 import numpy as np
 import torch
 
+from liecontrol import _options
 from liecontrol.report import print_table, restores_threads, sync, write_json
 
 __all__ = ["add_arguments", "run", "measure"]
 
 ENVS = {"pendulum": ("PendulumSwingUp", "Pendulum-v1"), "cartpole": ("CartPoleSwingUp", "CartPole-v1")}
-IMPLS = ("ours", "gymnasium-sync", "envpool")
+IMPLS = _options.ENV_BENCH_IMPLS
 COLUMNS = ["env", "impl", "mode", "device", "num_envs", "steps_per_s", "vs_gymnasium_sync", "vs_envpool",
            "status"]
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--envs", nargs="+", default=list(ENVS), choices=list(ENVS))
-    parser.add_argument("--num-envs", nargs="+", type=int, default=[1, 16, 64, 256, 1024, 4096])
-    parser.add_argument("--impls", nargs="+", default=list(IMPLS), choices=list(IMPLS))
-    parser.add_argument("--modes", nargs="+", default=["torch", "numpy"], choices=["torch", "numpy"],
-                        help="output modes of our env")
-    parser.add_argument("--device", nargs="+", default=None, help="devices of our env (default cpu, +cuda)")
-    parser.add_argument("--seconds", type=float, default=0.25, help="stepping time per sample")
-    parser.add_argument("--repeats", type=int, default=5, help="samples per measurement (median)")
-    parser.add_argument("--max-sync-envs", type=int, default=1024,
-                        help="largest SyncVectorEnv measured (a Python loop; 4096 takes long to build)")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads of our env (default 1: robust on a shared machine; "
-                             "EnvPool keeps its own pool of one thread per core)")
-    parser.add_argument("--no-compile", action="store_true",
-                        help="skip the ours-compiled and ours-aot rows (TaskVectorEnv(compile=True / 'aot'))")
-    parser.add_argument("--json", default=None, metavar="PATH", help="write the records as JSON")
+add_arguments = _options.bench_envs
 
 
 def _rate(step, N: int, seconds: float, repeats: int, device=None, warmup: int = 5) -> float:
@@ -168,11 +153,12 @@ def measure(envs=tuple(ENVS), num_envs=(1, 16, 64, 256, 1024, 4096), impls=IMPLS
 
 
 def run(args: argparse.Namespace) -> int:
-    records = measure(envs=args.envs, num_envs=args.num_envs, impls=args.impls, modes=args.modes,
-                      devices=args.device, seconds=args.seconds, repeats=args.repeats,
+    short = {task: key for key, (task, _) in ENVS.items()}
+    records = measure(envs=[short[t] for t in args.tasks], num_envs=args.num_envs, impls=args.impls,
+                      modes=args.modes, devices=args.devices, seconds=args.seconds, repeats=args.repeats,
                       max_sync_envs=args.max_sync_envs, threads=args.threads, compiled=not args.no_compile,
                       log=lambda s: None)
-    threads = args.threads if args.threads > 0 else torch.get_num_threads()  # measure() restores torch's
+    threads = args.threads
     print(f"env steps per second, torch {torch.__version__}, {threads} thread(s) of ours; "
           "vs_* = ours / anchor at the same number of envs (same run)")
     print_table(records, COLUMNS)

@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from liecontrol import _options
 from liecontrol.report import print_table, restores_threads, time_ms, write_json
 
 __all__ = ["add_arguments", "run", "PROBLEMS"]
@@ -59,23 +60,7 @@ CROC_COST_TOL = 1e-12  # relative difference of the cost of the same trajectory
 CROC_LABEL = "crocoddyl BoxFDDP (1 at a time)"
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--batch", type=int, default=64, help="batch size B (default 64)")
-    parser.add_argument("--horizon", type=int, default=100, help="horizon T (default 100)")
-    parser.add_argument("--problems", nargs="+", default=list(PROBLEMS), choices=list(PROBLEMS))
-    parser.add_argument("--max-iter", type=int, default=100, help="iLQR iterations at most, both sides")
-    parser.add_argument("--repeats", type=int, default=3, help="timed runs of our solver (median)")
-    parser.add_argument("--anchor-repeats", type=int, default=1, help="timed runs of each anchor (median)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads on both sides (default 1)")
-    parser.add_argument("--grad-batch", type=int, default=4, help="batch of the gradient check (float64)")
-    parser.add_argument("--no-anchor", action="store_true", help="skip the anchors")
-    parser.add_argument("--anchor-python", default=None,
-                        help="python of the mpc.pytorch environment (default: <repo>/.venv-mpc/bin/python)")
-    parser.add_argument("--croc-python", default=None,
-                        help="python with crocoddyl (default: this interpreter; the bench extra installs it)")
-    parser.add_argument("--no-croc", action="store_true", help="skip the crocoddyl anchor")
-    parser.add_argument("--json", default=None, metavar="PATH", help="write the records as JSON")
-    parser.add_argument("--seed", type=int, default=0)
+add_arguments = _options.bench_ilqr
 
 
 def _x0(name: str, B: int, seed: int) -> np.ndarray:

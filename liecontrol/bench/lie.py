@@ -39,13 +39,13 @@ import math
 
 import torch
 
+from liecontrol import _options
 from liecontrol.report import print_table, restores_threads, time_ms, write_json
 from torchlie import quaternion, se3, so3
 
 __all__ = ["add_arguments", "run", "measure"]
 
-OPS = ("exp", "exp_quat", "exp_mat", "log", "log_quat", "log_mat", "compose", "act", "inverse",
-       "Jr", "Jl", "Jr_inv", "Jl_inv")
+OPS = _options.LIE_OPS
 # what a library's timed call is given for the group element (see the module docstring); tangent-input
 # ops (exp, Jacobians) take ``(*, d)`` vectors on every side
 _MATRIX, _QUAT = "matrix", "quaternion"
@@ -53,17 +53,7 @@ _PP_NATIVE = {"so3": "quaternion LieTensor", "se3": "(t, quaternion) LieTensor"}
 _MAT_CONVERTED = "matrix (conversion timed)"
 
 
-def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--batch", type=int, nargs="+", default=[1, 1000, 100000], help="batch sizes")
-    p.add_argument("--dtype", nargs="+", default=["float32", "float64"], choices=["float32", "float64"])
-    p.add_argument("--groups", nargs="+", default=["so3", "se3"], choices=["so3", "se3"])
-    p.add_argument("--ops", nargs="+", default=list(OPS), choices=list(OPS))
-    p.add_argument("--device", nargs="+", default=None,
-                   help="devices (default: cpu, plus cuda when available)")
-    p.add_argument("--repeats", type=int, default=9, help="timed runs per measurement (median; ≥ 7)")
-    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
-    p.add_argument("--no-compile", action="store_true", help="skip the torch.compile column")
-    p.add_argument("--json", default=None, help="write the records to this JSON file")
+add_arguments = _options.bench_lie
 
 
 # ------------------------------------------------------------------------------------------- samples
@@ -331,8 +321,8 @@ def measure(groups=("so3", "se3"), ops=OPS, dtypes=("float32", "float64"), batch
 def run(args: argparse.Namespace) -> int:
     if args.threads:
         torch.set_num_threads(args.threads)
-    records = measure(groups=args.groups, ops=args.ops, dtypes=args.dtype, batches=args.batch,
-                      devices=args.device, repeats=max(args.repeats, 1), compile_ours=not args.no_compile)
+    records = measure(groups=args.groups, ops=args.ops, dtypes=args.dtypes, batches=args.batches,
+                      devices=args.devices, repeats=args.repeats, compile_ours=not args.no_compile)
     print(f"torch {torch.__version__}, {torch.get_num_threads()} threads; times in ms (median of "
           f"{args.repeats}); speedup = anchor_ms / ours_ms")
     cols = ["group", "op", "dtype", "batch", "ours_ms", "ours_compiled_ms", "anchor", "anchor_ms", "speedup",

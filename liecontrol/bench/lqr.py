@@ -39,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from liecontrol import _options
 from liecontrol.report import print_table, restores_threads, write_json
 
 __all__ = ["add_arguments", "run", "make_problem", "run_bench"]
@@ -47,25 +48,7 @@ _COLUMNS = ["problem", "B", "T", "n", "m", "dtype", "pass", "ours_ms", "anchor",
             "max_abs_diff_u"]
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--B", type=int, default=256, help="batch size")
-    parser.add_argument("--T", type=int, default=50, help="horizon (number of controls)")
-    parser.add_argument("--n", type=int, default=8, help="state dimension")
-    parser.add_argument("--m", type=int, default=4, help="control dimension")
-    parser.add_argument("--dtype", default="float32", choices=["float32", "float64"])
-    parser.add_argument("--repeats", type=int, default=7, help="timed runs per solver (median)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch threads for every solver (default 1: robust timings on a shared machine; "
-                             "0 keeps torch's default)")
-    parser.add_argument("--anchors", default="pypose,mpc,plain",
-                        help="comma-separated subset of: pypose, mpc (mpc.pytorch), plain (a textbook "
-                             "batched Riccati loop in torch, the issue's 'unoptimized' reference)")
-    parser.add_argument("--mpc-python", default=None,
-                        help="interpreter with mpc.pytorch (default: .venv-mpc/bin/python of the repo)")
-    parser.add_argument("--no-fused", action="store_true",
-                        help="skip the 'lqr-fused' rows (riccati.solve(..., fused=True), torch.compile)")
-    parser.add_argument("--json", default=None, help="write the records to this JSON file")
+add_arguments = _options.bench_lqr
 
 
 def make_problem(B: int, T: int, n: int, m: int, seed: int = 0) -> dict[str, np.ndarray]:
@@ -353,10 +336,12 @@ def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads
 
 def run(args: argparse.Namespace) -> int:
     anchors = tuple(a.strip() for a in args.anchors.split(",") if a.strip())
-    records = run_bench(B=args.B, T=args.T, n=args.n, m=args.m, dtype=args.dtype, repeats=args.repeats,
+    records = run_bench(B=args.batch, T=args.horizon, n=args.state_dim, m=args.control_dim, dtype=args.dtype,
+                        repeats=args.repeats,
                         seed=args.seed, threads=args.threads, anchors=anchors, mpc_python=args.mpc_python,
                         fused=not args.no_fused)
-    print(f"LQR B={args.B} T={args.T} n={args.n} m={args.m} {args.dtype}, torch threads "
+    print(f"LQR B={args.batch} T={args.horizon} n={args.state_dim} m={args.control_dim} {args.dtype}, "
+          "torch threads "
           f"{torch.get_num_threads()}; speedup = anchor_ms / ours_ms (same run)")
     print_table(records, _COLUMNS)
     if args.json:

@@ -51,13 +51,16 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from liecontrol.report import positive_int, print_table, restores_threads, sync, time_ms, write_json
+from liecontrol import _options
+from liecontrol.report import print_table, restores_threads, sync, time_ms, write_json
 
 __all__ = ["add_arguments", "run", "measure", "WORKLOADS", "Sizes", "DEFAULT_SIZES", "QUICK_SIZES",
            "COOKBOOK", "cookbook_problem"]
 
-WORKLOADS = ("quadrotor_step", "pendulum_mpc_step", "pendulum_ilqr_iteration", "cartpole_swingup_batch64",
-             "pendulum_swingup_batch64", "car_parking_step", "mpc_head_fwd_bwd", "cookbook_manipulator")
+#: the command's options (``--workloads``, ``--device``, ``--dtype``, ``--threads``, ``--repeats``,
+#: ``--quick``, ``--json``, ``--eager``), checked before this module is imported
+add_arguments = _options.bench_solver
+WORKLOADS = _options.SOLVER_WORKLOADS
 COLUMNS = ["workload", "case", "batch", "dtype", "device", "ours_ms", "anchor", "anchor_ms", "ratio"]
 _DTYPES = {"float32": torch.float32, "float64": torch.float64}
 
@@ -85,43 +88,6 @@ DEFAULT_SIZES = Sizes()
 QUICK_SIZES = Sizes(quad_batches=(1, 4), pend_steps=3, car_batch=2, car_steps=1,
                     car_horizon=8, swing_batch=2, swing_horizon=10, swing_max_iter=5, head_batches=(4,),
                     repeats=1)
-
-
-def _workload_list(s: str) -> tuple[str, ...]:
-    names = tuple(w.strip() for w in s.split(",") if w.strip())
-    bad = [w for w in names if w not in WORKLOADS]
-    if not names or bad:
-        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(WORKLOADS)}; "
-                                         f"unknown: {', '.join(bad) or '(empty)'}")
-    return names
-
-
-def _device(s: str) -> str:
-    if s not in ("cpu", "cuda"):
-        raise argparse.ArgumentTypeError(f"expected cpu or cuda, got {s!r}")
-    if s == "cuda" and not torch.cuda.is_available():
-        raise argparse.ArgumentTypeError("cuda was asked for but torch sees no CUDA device")
-    return s
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workloads", type=_workload_list, default=WORKLOADS, metavar="A,B",
-                        help=f"comma-separated subset of: {', '.join(WORKLOADS)} (default: all)")
-    parser.add_argument("--device", type=_device, default="cpu",
-                        help="device of our solvers: cpu (default) or cuda; anchors run on the CPU")
-    parser.add_argument("--dtype", choices=list(_DTYPES), default="float64",
-                        help="dtype of our solvers (default float64, the anchors' precision; the MPC head is "
-                             "float32 like SB3, the swing-ups' anchor rows float64)")
-    parser.add_argument("--threads", type=positive_int, default=1,
-                        help="torch threads, and the anchors' (default 1: per-core timings)")
-    parser.add_argument("--repeats", type=positive_int, default=None,
-                        help="timed calls per figure (median; default 5, 1 for the 64 swing-ups)")
-    parser.add_argument("--quick", action="store_true", help="tiny sizes (a smoke run of seconds)")
-    parser.add_argument("--json", default=None, metavar="PATH", help="write the records as a JSON list")
-    parser.add_argument("--eager", action="store_true",
-                        help="run iLQR's time sweeps eagerly (default: compiled programs, "
-                             "ILQROptions(compile=True); the first run builds them, a few seconds each, "
-                             "cached on disk)")
 
 
 @dataclasses.dataclass(frozen=True)

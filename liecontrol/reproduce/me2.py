@@ -27,7 +27,8 @@ from pathlib import Path
 
 import torch
 
-from liecontrol.report import positive_float, positive_int, print_table, public, write_result
+from liecontrol import _options
+from liecontrol.report import print_table, public, write_result
 from liecontrol.reproduce._trajectory import (
     PANDA_LIMITS,
     alpha_limits,
@@ -433,30 +434,7 @@ def save_figures(result: dict, out: Path) -> list[Path]:
 
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--json", metavar="PATH", help="write the results as JSON to PATH")
-    parser.add_argument("--out", default="out/me2", help="folder for the PNG figures (default out/me2)")
-    parser.add_argument("--no-plots", action="store_true", help="skip the figures")
-    parser.add_argument("--dt", type=positive_float, default=1e-3, help="time step [s] (default 1e-3)")
-    parser.add_argument("--horizon", type=positive_int, default=300, help="horizon H in steps (default 300)")
-    parser.add_argument("--fig4-horizons", type=positive_int, nargs="+",
-                        default=[10, 25, 50, 100, 200, 300, 500],
-                        help="horizon lengths [steps] for Fig. 4")
-    parser.add_argument("--velocity-scale", type=positive_float, default=0.25,
-                        help="fraction of the Panda's Cartesian speed limits (default 0.25)")
-    parser.add_argument("--acceleration-scale", type=positive_float, default=0.1,
-                        help="fraction of the Panda's Cartesian acceleration limits (default 0.1)")
-    parser.add_argument("--timing-batch", type=positive_int, default=1000,
-                        help="at least this many horizons in the timed batch (default 1000)")
-    parser.add_argument("--timing-horizon", type=positive_int, default=None,
-                        help="steps per timed horizon (default: --horizon)")
-    parser.add_argument("--repeats", type=positive_int, default=7, help="timed repetitions (default 7)")
-    parser.add_argument("--timing-dtype", choices=sorted(_DTYPES), default="float64",
-                        help="dtype of the timed batch (errors are always computed in float64)")
-    parser.add_argument("--no-cut-locus", action="store_true",
-                        help="skip the runs from the tool-down start pose (rotation angle π)")
-    parser.add_argument("--no-wobble", action="store_true",
-                        help="skip the variants with non-commuting twists (paper path + a sinusoidal twist)")
+add_arguments = _options.reproduce_me2
 
 
 def run(args: argparse.Namespace) -> int:

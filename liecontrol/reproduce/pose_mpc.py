@@ -40,10 +40,9 @@ import torch
 from controllers.ik import resolved_rate_step, solve_ik
 from controllers.pose_mpc import FRAMES, PoseMPC, twist_box
 from controllers.systems.panda import Panda
+from liecontrol import _options
 from liecontrol.report import (
     markdown_cell,
-    positive_float,
-    positive_int,
     print_table,
     public,
     restores_threads,
@@ -392,18 +391,7 @@ def save_figures(result: dict, out: Path) -> list[Path]:
     return paths
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="out/pose_mpc", help="folder for the figures and report.md")
-    parser.add_argument("--json", metavar="PATH", help="write the results as JSON to PATH")
-    parser.add_argument("--horizon", type=positive_int, default=30, help="MPC horizon in steps (default 30)")
-    parser.add_argument("--dt", type=positive_float, default=0.01, help="control period [s] (default 0.01)")
-    parser.add_argument("--velocity-scale", type=positive_float, default=0.25,
-                        help="fraction of the Panda's Cartesian speed limits (references; default 0.25)")
-    parser.add_argument("--batch", type=positive_int, default=256, help="arms in the batched timing")
-    parser.add_argument("--ik-goals", type=positive_int, default=1000, help="goals of the IK benchmark")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch intra-op threads (default 1)")
-    parser.add_argument("--quick", action="store_true", help="one path per start, 100 IK goals (smoke)")
-    parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+add_arguments = _options.reproduce_pose_mpc
 
 
 def run(args: argparse.Namespace) -> int:

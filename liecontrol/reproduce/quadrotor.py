@@ -34,13 +34,14 @@ import torch
 from controllers.manifold_mpc import ErrorStateMPC, riccati_terminal_weight, track
 from controllers.systems import quadrotor_flatness as qf
 from controllers.systems.quadrotor import Quadrotor, QuadrotorSimulator
-from liecontrol.report import markdown_cell, positive_int, print_table, public, restores_threads, write_result
+from liecontrol import _options
+from liecontrol.report import markdown_cell, print_table, public, restores_threads, write_result
 from torchlie import so3
 
 __all__ = ["add_arguments", "run", "run_experiment", "SCENARIOS"]
 
 D = torch.float64
-SCENARIOS = ("circle", "circle_mass", "flip", "loop8")
+SCENARIOS = _options.QUADROTOR_SCENARIOS
 DRAG = (0.4, 0.4, 0.1)
 TARGETS = {"circle_max_m": 0.05, "loop8_rms_m": 0.24, "step_ms_single": 2.0, "step_ms_batch1024": 50.0}
 
@@ -344,17 +345,7 @@ def _public(result: dict) -> dict:
 
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="out/quadrotor", help="folder for the figures and report.md")
-    parser.add_argument("--json", metavar="PATH", help="write the results as JSON to PATH")
-    parser.add_argument("--horizons", type=positive_int, nargs="+", default=[8, 16, 32],
-                        help="MPC horizons; the first is the headline and the anchor's (default 8 16 32)")
-    parser.add_argument("--scenarios", nargs="+", choices=SCENARIOS, default=list(SCENARIOS))
-    parser.add_argument("--no-anchor", action="store_true", help="skip the CasADi + IPOPT anchor")
-    parser.add_argument("--batch", type=positive_int, default=1024, help="quadrotors in the batched step")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch intra-op threads (default 1)")
-    parser.add_argument("--quick", action="store_true", help="short references (a smoke run)")
-    parser.add_argument("--no-plots", action="store_true", help="skip the figures")
+add_arguments = _options.reproduce_quadrotor
 
 
 def run(args: argparse.Namespace) -> int:

@@ -29,7 +29,8 @@ import torch
 from controllers.manifold_mpc import ErrorStateMPC, track
 from controllers.problem import Reason
 from controllers.systems.ugv import ugv_scenario
-from liecontrol.report import print_table, public, restores_threads, time_ms, write_result
+from liecontrol import _options
+from liecontrol.report import fmt, print_table, public, restores_threads, time_ms, write_result
 
 __all__ = ["add_arguments", "run", "run_experiment", "write_outputs", "TARGET_POS_M", "TARGET_STEP_MS"]
 
@@ -39,10 +40,10 @@ TARGET_POS_M = 0.1  # position error bound on the whole path (the issue's target
 TARGET_STEP_MS = 20.0  # one control period at 50 Hz
 SPEED = 2.4  # m/s, the paper's reference speed
 DT = 0.02  # s, 50 Hz
-PAPER_HORIZON = 45
-QUICK_STEPS = 150
+PAPER_HORIZON = _options.UGV_PAPER_HORIZON
+QUICK_STEPS = _options.UGV_QUICK_STEPS
 TRANSIENT_S = 2.0  # the offset run's errors are also reported after this time
-DEFAULT_WEIGHTS = {"q_pos": 100.0, "q_yaw": 10.0, "r_v": 1.0, "r_omega": 1.0}
+DEFAULT_WEIGHTS = _options.UGV_WEIGHTS
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -315,17 +316,9 @@ def print_report(result: dict, file=None) -> None:
           f"{'met' if r['compute_target_met'] else 'NOT met'}", file=file)
 
 
-def _fmt(v) -> str:
-    if v is None:
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.3g}" if abs(v) >= 1e-3 or v == 0 else f"{v:.2e}"
-    return str(v)
-
-
 def _md_table(rows: list[dict], cols: list[str]) -> str:
     lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---" for _ in cols) + "|"]
-    lines += ["| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |" for r in rows]
+    lines += ["| " + " | ".join(fmt(r.get(c)) for c in cols) + " |" for r in rows]
     return "\n".join(lines)
 
 
@@ -517,57 +510,7 @@ def write_outputs(result: dict, out: Path) -> list[Path]:
 # ---------------------------------------------------------------------------------------------------------
 
 
-def _int_at_least(lo: int):
-    def parse(s: str) -> int:
-        try:
-            v = int(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected an integer, got {s!r}") from None
-        if v < lo:
-            raise argparse.ArgumentTypeError(f"expected an integer ≥ {lo}, got {s}")
-        return v
-
-    return parse
-
-
-def _float(positive: bool):
-    def parse(s: str) -> float:
-        try:
-            v = float(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a number, got {s!r}") from None
-        if not math.isfinite(v) or (v <= 0 if positive else v < 0):
-            raise argparse.ArgumentTypeError(f"expected a finite {'positive' if positive else 'nonnegative'} "
-                                             f"number, got {s}")
-        return v
-
-    return parse
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", default="out/ugv",
-                        help="folder for the figures and report.md (default out/ugv)")
-    parser.add_argument("--json", metavar="PATH", help="write the results as JSON to PATH")
-    parser.add_argument("--horizon", type=_int_at_least(1), default=PAPER_HORIZON,
-                        help=f"MPC horizon in steps (default {PAPER_HORIZON}, the paper's)")
-    parser.add_argument("--steps", type=_int_at_least(1), default=None,
-                        help="closed-loop steps (default: the whole path)")
-    parser.add_argument("--quick", action="store_true", help=f"a short run ({QUICK_STEPS} steps, batch ≤ 16)")
-    parser.add_argument("--seed", type=_int_at_least(0), default=0, help="seed of the map points (default 0)")
-    parser.add_argument("--dtype", choices=sorted(_DTYPES), default="float64",
-                        help="MPC dtype (default float64)")
-    parser.add_argument("--batch", type=_int_at_least(0), default=256,
-                        help="vehicles in the batched-step timing (default 256; 0 skips it)")
-    parser.add_argument("--threads", type=_int_at_least(1), default=1, help="torch threads (default 1)")
-    parser.add_argument("--q-pos", type=_float(True), default=DEFAULT_WEIGHTS["q_pos"],
-                        help=f"position weight (default {DEFAULT_WEIGHTS['q_pos']:g})")
-    parser.add_argument("--q-yaw", type=_float(False), default=DEFAULT_WEIGHTS["q_yaw"],
-                        help=f"yaw weight (default {DEFAULT_WEIGHTS['q_yaw']:g})")
-    parser.add_argument("--r-v", type=_float(True), default=DEFAULT_WEIGHTS["r_v"],
-                        help=f"speed input weight (default {DEFAULT_WEIGHTS['r_v']:g})")
-    parser.add_argument("--r-omega", type=_float(True), default=DEFAULT_WEIGHTS["r_omega"],
-                        help=f"yaw-rate input weight (default {DEFAULT_WEIGHTS['r_omega']:g})")
-    parser.add_argument("--no-offset", action="store_true", help="skip the run from an offset start")
+add_arguments = _options.reproduce_ugv
 
 
 def run(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ from liecontrol import cli
 
 def test_bench_envs_writes_records_with_ratios(tmp_path):
     path = tmp_path / "envs.json"
-    assert cli.main(["bench", "envs", "--envs", "pendulum", "--num-envs", "2", "64", "--seconds", "0.02",
+    assert cli.main(["bench", "envs", "--tasks", "pendulum", "--num-envs", "2", "64", "--seconds", "0.02",
                      "--repeats", "1", "--max-sync-envs", "2", "--no-compile", "--json", str(path)]) == 0
     recs = json.loads(path.read_text())
     keys = {"env", "impl", "mode", "device", "num_envs", "steps_per_s"}
