@@ -76,38 +76,54 @@ def scan(body: Callable, carry: tuple, xs: Sequence[torch.Tensor], T: int, rever
     return _scan_loop(body, carry, xs, T, reverse)
 
 
+#: time steps per iteration of a traced loop: the ``while_loop`` copies its output buffers once per iteration,
+#: so taking several steps per iteration divides that traffic (and the per-iteration overhead) by as much
+UNROLL = int(os.environ.get("LIECONTROL_SCAN_UNROLL", "4"))
+
+
 def _scan_loop(body, carry, xs, T, reverse):
-    """The traced form of :func:`scan`: a ``while_loop`` over a time index with preallocated outputs.
+    """The traced form of :func:`scan`: a ``while_loop`` over blocks of :data:`UNROLL` time steps with
+    preallocated outputs (the first ``(T - 1) % UNROLL + 1`` steps are taken before the loop, which also
+    allocates the outputs).
 
     torch's own ``scan`` operator fills its outputs in place, but with a dynamic batch it fails to lower in
-    2.13 unless the batch size is passed into the loop, and with that it crashed the built program here
-    (iLQR's backward pass); the ``while_loop`` copies its output buffers at every step (``index_copy``), which
-    costs little at the batch sizes of a control loop and grows with ``T × batch`` (measured: 0.16 ms at
-    B = 1, 9.6 ms at B = 1024 for a 40-step Riccati sweep)."""
+    2.13 unless the batch size is passed into the loop, and then it crashed or returned wrong rollouts in
+    iLQR's sweeps (ARCHITECTURE.md); the ``while_loop`` writes each block into copies of its output buffers
+    (``index_copy``), which costs little at the batch sizes of a control loop and grows with ``T × batch``."""
     from torch._higher_order_ops.while_loop import while_loop
 
-    nc = len(carry)
-    first = T - 1 if reverse else 0
-    carry, y0 = body(None, carry, [x[first] if x.shape[0] > 1 else x[0] for x in xs])
-    dev = xs[0].device if xs else carry[0].device
-    bufs = tuple(y.new_zeros(T, *y.shape).index_copy(0, torch.full((1,), first, device=dev), y.unsqueeze(0))
-                 for y in y0)
-    if T == 1:
-        return carry, bufs
+    nc, k = len(carry), max(1, UNROLL)
     step = -1 if reverse else 1
-    i0 = torch.full((), first + step, dtype=torch.int64, device=dev)
+    order = list(range(T - 1, -1, -1)) if reverse else list(range(T))
+    peel = (T - 1) % k + 1
+    dev = xs[0].device if xs else carry[0].device
+
+    def at(x, idx):  # time slice idx (a tensor of one index) of x
+        return x.index_select(0, idx).squeeze(0) if x.shape[0] > 1 else x[0].clone()
+
+    ys0 = []
+    for t in order[:peel]:
+        carry, y = body(None, carry, [x[t] if x.shape[0] > 1 else x[0] for x in xs])
+        ys0.append((t, y))
+    bufs = tuple(y.new_zeros(T, *y.shape) for y in ys0[0][1])
+    for t, y in ys0:
+        idx = torch.full((1,), t, device=dev)
+        bufs = tuple(b.index_copy(0, idx, v.unsqueeze(0)) for b, v in zip(bufs, y))
+    if peel == T:
+        return carry, bufs
+    i0 = torch.full((), order[peel], dtype=torch.int64, device=dev)
 
     def cond(i, *rest):
         return (i >= 0) if reverse else (i < T)
 
     def loop_body(i, *rest):
-        c, b = rest[:nc], rest[nc:]
-        idx = i.reshape(1)
-        xt = [x.index_select(0, idx).squeeze(0) if x.shape[0] > 1 else x[0].clone() for x in xs]
-        c, y = body(None, tuple(c), xt)
-        b = tuple(bb.index_copy(0, idx, yy.unsqueeze(0)) for bb, yy in zip(b, y))
+        c, b = tuple(rest[:nc]), rest[nc:]
+        for j in range(k):
+            idx = (i + j * step).reshape(1)
+            c, y = body(None, c, [at(x, idx) for x in xs])
+            b = tuple(bb.index_copy(0, idx, yy.unsqueeze(0)) for bb, yy in zip(b, y))
         # a carry that aliases an input is not allowed in a while_loop body
-        return (i + step, *(v.clone() for v in c), *b)
+        return (i + k * step, *(v.clone() for v in c), *b)
 
     out = while_loop(cond, loop_body, (i0, *carry, *bufs))
     return tuple(out[1:1 + nc]), tuple(out[1 + nc:])
