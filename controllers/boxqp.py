@@ -834,3 +834,53 @@ def _box_qp_scalar_x(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     h = H[..., 0]  # (nb, 1)
     x = _clip(-g / torch.where(h > 0, h, 1.0), lo, hi)
     return torch.where(h > 0, x, _clip(torch.zeros_like(x), lo, hi))
+
+
+def box_qp_fixed(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, x0: Tensor, iters: int, *,
+                 tol: float | None = None, gap_tol: float | None = None
+                 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """A fixed-shape, sync-free box QP for compiled programs (private to the solvers): ``iters`` steps of the
+    primal-dual active-set sequence (:func:`_working_set` of ``z``, ``z ←`` its Newton point) from ``x0``,
+    the lowest feasible point ``clip(z)`` met (``clip(x0)`` included) returned with :func:`box_qp`'s
+    certificate at it (the same tests, computed for every element).
+
+    ``H (nb, m, m)``, ``g``, ``lo``, ``hi``, ``x0`` ``(nb, m)``, finite data (the caller sanitizes).  Returns
+    ``(x, certified, clamped, kkt_residual)``; an uncertified element has no status here: the caller decides
+    (the MPC solves it again with :func:`box_qp`).  No data-dependent exit, no host read: every element
+    runs every step (the sequence settles on its face in a few steps; a settled element repeats its point).
+    """
+    from controllers._compiled import scan  # noqa: PLC0415  (a private sibling; keeps this module light)
+
+    dtype = H.dtype
+    eps = torch.finfo(torch.float64).eps
+    tol = eps ** 0.5 if tol is None else tol
+    gap_tol = _GAP_TOL.get(dtype, _GAP_TOL[torch.float32]) if gap_tol is None else gap_tol
+    dsq, hsc = _jacobi(H)
+    x = _clip(x0, lo, hi)
+    fx = 0.5 * (x * _matvec(H, x)).sum(-1) + (g * x).sum(-1)
+    eye = torch.eye(H.shape[-1], dtype=dtype, device=H.device)
+
+    def body(t, carry, xs):
+        z, best, fbest = carry
+        Ht, gt, lot, hit, e = xs
+        hd = Ht.diagonal(dim1=-2, dim2=-1)
+        w = _working_set(z, gt + _matvec(Ht, z), lot, hit, hd)
+        free = w == 0
+        b = torch.where(w == 1, lot, torch.where(w == 2, hit, torch.zeros_like(z)))
+        L, info = torch.linalg.cholesky_ex(masked_hessian(Ht, free))
+        L = torch.where((info != 0).view(-1, 1, 1), e, L)
+        rhs = torch.where(free, gt + _matvec(Ht, b), 0.0)
+        y = b - torch.cholesky_solve(rhs.unsqueeze(-1), L).squeeze(-1)
+        y = torch.where((info == 0).unsqueeze(-1), y, z)
+        xc = _clip(y, lot, hit)
+        fc = 0.5 * (xc * _matvec(Ht, xc)).sum(-1) + (gt * xc).sum(-1)
+        better = fc < fbest
+        return (y, torch.where(better.unsqueeze(-1), xc, best), torch.where(better, fc, fbest)), (fc,)
+
+    xs = [v.unsqueeze(0) for v in (H, g, lo, hi, eye)]
+    (_, x, _), _ = scan(body, (x, x.clone(), fx), xs, iters)
+    grad, clamped, res, kkt_tol = _kkt(H, g, lo, hi, x, dsq, hsc, tol)
+    gap, scale, _ = _objective_gap(H, g, lo, hi, x, dsq)
+    gtol = gap_tol * scale
+    cert = (res <= kkt_tol) & torch.isfinite(kkt_tol) & (gap <= gtol) & torch.isfinite(gtol)
+    return x, cert, clamped, res

@@ -77,6 +77,7 @@ from typing import Any, Protocol, runtime_checkable
 import torch
 from torch import Tensor
 
+from controllers._compiled import scan
 from controllers._validate import all_finite, broadcast_batch, check_limit, check_weight, enum_arg
 from controllers.boxqp import BoxQPStatus, at_lower, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
@@ -468,6 +469,21 @@ class ErrorStateMPC:
         jacobians: ``"auto"``, ``"analytic"`` or ``"autograd"`` (:func:`system_jacobians`).
         qp_options: keyword arguments for :func:`~controllers.boxqp.box_qp` (an unknown key is a
             ``ValueError``).
+        compile: run :meth:`solve`'s numeric core (statuses of the inputs, manifold membership,
+            linearization, condensed QP or Riccati form, the box QP, its certificate, the NaN-ing of failed
+            elements) as one program built by :func:`controllers._compiled.build` (``torch.export`` +
+            AOTInductor, a dynamic batch, cached on disk: the first solve of a shape/dtype/device builds it,
+            seconds; later processes load it) with one host read per solve.  The values and statuses
+            equal the eager path's (to round-off).  The box QP runs a fixed budget of active-set steps
+            with :func:`~controllers.boxqp.box_qp`'s certificate; an element it does not certify (rare:
+            an ill-conditioned or not convex QP, or non-finite data) is solved again eagerly, as are all
+            elements of a batch with a state off the manifold or without a finite element (for the
+            error the eager path raises).  Large bounded batches (the eager path's Riccati-first rule)
+            run the Riccati program and condense only the elements that break a limit (one more host
+            read when some do).  Stays eager: gradients (``grad`` not ``"none"`` with autograd
+            enabled), :meth:`iterate`, systems that are not dataclasses of plain numbers and their
+            manifold, points whose ProductState nests another, batched weights' checks (computed
+            eagerly, then passed in), ``exact_G``-style options.  Default False (no build).
 
     With float32 (or half) data the condensed QP is built and solved in float64 and the result cast back
     (differentiably): the condensed Hessian of a long horizon is too ill-conditioned for float32 to find
@@ -477,8 +493,12 @@ class ErrorStateMPC:
     def __init__(self, system: ManifoldSystem, horizon: int, Q: Tensor, R: Tensor, P: Tensor | None = None, *,
                  u_lower: Tensor | float | None = None, u_upper: Tensor | float | None = None,
                  solver: str = "auto", grad: GradMode | str = GradMode.IMPLICIT, jacobians: str = "auto",
-                 qp_options: dict | None = None):
+                 qp_options: dict | None = None, compile: bool = False):
         fn = "ErrorStateMPC"
+        if not isinstance(compile, bool):
+            raise TypeError(f"{fn}: argument 'compile' must be a bool, got {type(compile).__name__}")
+        self.compile = compile
+        self._cache: dict = {}
         M = getattr(system, "manifold", None)
         if M is None or not getattr(M, "has_boxplus", False):
             raise TypeError(f"{fn}: argument 'system' must have a 'manifold' with ⊞/⊟/⊕ "
@@ -568,6 +588,12 @@ class ErrorStateMPC:
         return out
 
     def _prepare(self, x0, x_ref, u_ref: Tensor, fn: str):
+        batch = self._check_args(x0, x_ref, u_ref, fn)
+        return (*self._sanitized(x0, x_ref, u_ref, batch, fn), batch)
+
+    def _check_args(self, x0, x_ref, u_ref: Tensor, fn: str):
+        """The Python-level checks of a solve's arguments (types, shapes, dtypes, devices; no tensor is
+        read): the broadcast batch shape, or a ``TypeError``/``ValueError`` naming the argument."""
         M, N, m = self.manifold, self.N, self.m
         product = hasattr(M, "components")
         for name, v in (("x0", x0), ("x_ref", x_ref)):
@@ -599,6 +625,12 @@ class ErrorStateMPC:
             if t.dtype != leaf.dtype or t.device != leaf.device:
                 raise TypeError(f"{fn}: argument '{name}' must have x0's dtype and device ({leaf.dtype}, "
                                 f"{leaf.device}), got {t.dtype} on {t.device}")
+        return batch
+
+    def _sanitized(self, x0, x_ref, u_ref: Tensor, batch, fn: str):
+        """The inputs expanded to the batch, bad elements replaced by stand-ins, the states checked on the
+        manifold: ``(x0, x_ref, u_ref, ok)``."""
+        M, N, m = self.manifold, self.N, self.m
         x0 = _expand_point(M, x0, batch)
         x_ref = _expand_point(M, x_ref, (*batch, N + 1))
         u_ref = u_ref.expand(*batch, N, m)
@@ -617,7 +649,7 @@ class ErrorStateMPC:
             u_ref = torch.where(ok[..., None, None], u_ref, torch.zeros((), dtype=u_ref.dtype))
         M.check(x0, "x0")
         M.check(x_ref, "x_ref")
-        return x0, x_ref, u_ref, ok, batch
+        return x0, x_ref, u_ref, ok
 
     def _weights(self, batch) -> tuple[Tensor, Tensor, Tensor]:
         """``(Qs (*B, N+1, n, n), R (m, m) or (*B, m, m), reason (*B,))``: the stage and terminal weights,
@@ -725,15 +757,7 @@ class ErrorStateMPC:
             return sol.u, sol.x, sol.cost, reason, zeros, clamped
         Su, free_x, H, g = _condensed_qp(es, dx0, Qs, R, q, r)
         dU, reason, kkt, clamped = self._qp_solve(H, g, lo, hi, warm, grad)
-        Rb = R.expand(*batch, m, m)
-        dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
-        dUr = dU.reshape(*batch, N, m)
-        cost = ((dX.unsqueeze(-2) @ Qs @ dX.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1) \
-            + ((dUr.unsqueeze(-2) @ Rb.unsqueeze(-3) @ dUr.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1)
-        if q is not None:
-            cost = cost + 2 * (q * dX).sum((-2, -1))
-        if r is not None:
-            cost = cost + 2 * (r * dUr).sum((-2, -1))
+        dUr, dX, cost = _plan(Su, free_x, dU, Qs, R, q, r)
         return dUr, dX, cost, reason.to(torch.int64), kkt, clamped.reshape(*batch, N, m)
 
     def _qp_solve(self, H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, warm: Tensor | None, grad: GradMode):
@@ -804,6 +828,13 @@ class ErrorStateMPC:
             warm: optional ``(*B, N, m)`` controls (absolute) to warm-start the box QP, e.g. the previous
                 plan shifted (:func:`controllers.mpc.shift`).
         """
+        if self.compile and (self.grad is GradMode.NONE or not torch.is_grad_enabled()):
+            sol = self._solve_compiled(x0, x_ref, u_ref, warm)
+            if sol is not None:
+                return sol
+        return self._solve_eager(x0, x_ref, u_ref, warm)
+
+    def _solve_eager(self, x0, x_ref, u_ref: Tensor, warm: Tensor | None) -> ErrorStateSolution:
         fn = "ErrorStateMPC.solve"
         x0, x_ref, u_ref, batch, Qs, R, lo, hi, w, reason0 = self._inputs(x0, x_ref, u_ref, warm, fn)
         M = self.manifold
@@ -822,6 +853,144 @@ class ErrorStateMPC:
                                   clamped=clamped & ok[..., None, None])
 
     __call__ = solve
+
+    # -- the compiled step (compile=True) ---------------------------------------------------------------
+    def _program_inputs(self, x0, x_ref, u_ref: Tensor, warm: Tensor | None):
+        """The flat, batch-first arguments of :func:`controllers._esmpc_core.step` after the Python-level
+        checks: ``(spec, args, batch_dims, batch)``, or None where the compiled path does not apply."""
+        from controllers._esmpc_core import Spec  # noqa: PLC0415
+
+        fn = "ErrorStateMPC.solve"
+        M, N, n, m = self.manifold, self.N, self.n, self.m
+        batch = self._check_args(x0, x_ref, u_ref, fn)
+        if warm is not None:
+            self._warm(warm, u_ref, batch, fn)
+        name = f"{M._name}.check"
+        M._check_point(x0, "x0", name, False, False)  # structure and shapes (membership: in the program)
+        M._check_point(x_ref, "x_ref", name, False, False)
+        if self._system_key() is None or batch.numel() == 0:
+            return None
+        if isinstance(x0, Tensor):
+            names, l0, lr = None, [x0], [x_ref]
+        else:
+            if not all(isinstance(t, Tensor) for t in list(x0.values()) + list(x_ref.values())):
+                return None  # a nested ProductState
+            names, l0, lr = tuple(x0.keys()), list(x0.values()), list(x_ref.values())
+        ndims = tuple(len(M.event_shape) for _ in l0) if names is None else \
+            tuple(x0.event_ndims[c] for c in names)
+        B = batch.numel()
+        args = [t.expand(*batch, *t.shape[t.dim() - k:]).reshape(B, *t.shape[t.dim() - k:])
+                for t, k in zip(l0, ndims)]
+        args += [t.expand(*batch, N + 1, *t.shape[t.dim() - k:]).reshape(B, N + 1, *t.shape[t.dim() - k:])
+                 for t, k in zip(lr, ndims)]
+        args.append(u_ref.expand(*batch, N, m).reshape(B, N, m))
+        dims = [0] * len(args)
+        lo, hi = self._limits(u_ref)
+        lb = lo.dim() > 2 or hi.dim() > 2
+        if lb:
+            args += [lo.expand(*batch, N, m).reshape(B, N, m), hi.expand(*batch, N, m).reshape(B, N, m)]
+        else:
+            args += [lo.expand(N, m), hi.expand(N, m)]
+        dims += [0 if lb else None] * 2
+        wb = max(self.Q.dim(), self.R.dim(), self.P.dim()) > 2
+        if wb:  # checked eagerly (the PSD test reads the host), passed in
+            Qs, R, wr = self._weights(batch)
+            args += [Qs.reshape(B, N + 1, n, n), R.expand(*batch, m, m).reshape(B, m, m), wr.reshape(B)]
+            dims += [0, 0, 0]
+        else:
+            key = ("weights", u_ref.dtype, u_ref.device)
+            if key not in self._cache:
+                Qs, R, _ = self._weights(())
+                self._cache[key] = (Qs.contiguous(), R.contiguous())
+            args += list(self._cache[key])
+            dims += [None, None]
+        if warm is not None:
+            args.append(warm.expand(*batch, N, m).reshape(B, N, m))
+            dims.append(0)
+        form = "qp" if self.solver == "qp" and not self._riccati_first(B) else "riccati"
+        opts = self.qp_options
+        spec = Spec(self.system, N, form, self.bounded, self.jacobians, names, ndims, wb, lb,
+                    warm is not None, _QP_ITERS, opts.get("tol"), opts.get("gap_tol"))
+        return spec, [a.contiguous() for a in args], dims, batch
+
+    def _riccati_first(self, nb: int) -> bool:
+        """The eager path's rule (:meth:`_solve_lq`): a big bounded batch goes through the Riccati form."""
+        N, m, n = self.N, self.m, self.n
+        return self.bounded and self.R.dim() == 2 and nb * (N * m) ** 2 * (N + 1) * n > _RICCATI_FIRST_FLOPS
+
+    def _system_key(self) -> str | None:
+        if "system" not in self._cache:
+            from controllers._esmpc_core import system_key  # noqa: PLC0415
+
+            self._cache["system"] = system_key(self.system)
+        return self._cache["system"]
+
+    def _program(self, spec, args, dims):
+        import functools  # noqa: PLC0415
+
+        from controllers import _compiled  # noqa: PLC0415
+        from controllers._esmpc_core import step  # noqa: PLC0415
+
+        return _compiled.build(f"esmpc_{spec.form}", spec.key(self._system_key()),
+                               functools.partial(step, spec), tuple(args), dims)
+
+    def _solve_compiled(self, x0, x_ref, u_ref: Tensor, warm: Tensor | None) -> ErrorStateSolution | None:
+        """:meth:`solve` through the program (class docstring, ``compile``); None: take the eager path."""
+        import dataclasses as dc  # noqa: PLC0415
+
+        prep = self._program_inputs(x0, x_ref, u_ref, warm)
+        if prep is None:
+            return None
+        spec, args, dims, batch = prep
+        out = list(self._program(spec, args, dims)(*args))
+        flags = out[-1].tolist()  # the one host read
+        if flags[0] or flags[1]:
+            return None  # no finite element / a state off the manifold: the eager path raises its error
+        if flags[2] and spec.form == "riccati":  # elements that break a limit: condense those
+            idx = out[6].nonzero().squeeze(-1)
+            sub = [a if d is None else a.index_select(0, idx) for a, d in zip(args, dims)]
+            qspec = dc.replace(spec, form="qp")
+            part = list(self._program(qspec, sub, dims)(*sub))
+            for i in range(6):
+                out[i] = out[i].index_copy(0, idx, part[i])
+            flags = part[-1].tolist()
+            if flags[2]:
+                j = part[6].nonzero().squeeze(-1)
+                self._eager_subset(spec, args, dims, out, idx.index_select(0, j), batch)
+        elif flags[2]:
+            self._eager_subset(spec, args, dims, out, out[6].nonzero().squeeze(-1), batch)
+        U, dX, cost, reason, kkt, clamped = (t.reshape((*batch, *t.shape[1:])) for t in out[:6])
+        return ErrorStateSolution(u=U[..., 0, :], U=U, dx=dX, cost=cost,
+                                  status=SolverStatus.from_reason(reason), kkt_residual=kkt, clamped=clamped)
+
+    def _eager_subset(self, spec, args, dims, out: list, idx: Tensor, batch) -> None:
+        """Solve the elements ``idx`` of the flat batch eagerly (the program's box QP did not certify them)
+        and write them into ``out`` (the program's outputs)."""
+        import copy  # noqa: PLC0415
+
+        from torchlie.manifolds import ProductState  # noqa: PLC0415
+
+        k = len(spec.ndims)
+        sub = [a if d is None else a.index_select(0, idx) for a, d in zip(args, dims)]
+
+        def point(leaves):
+            if spec.names is None:
+                return leaves[0]
+            return ProductState(dict(zip(spec.names, leaves)), dict(zip(spec.names, spec.ndims)))
+
+        mpc = copy.copy(self)
+        mpc.compile = False
+        if spec.limits_batched:
+            mpc.u_lower, mpc.u_upper, mpc._own_limits = sub[2 * k + 1], sub[2 * k + 2], (False, False)
+        if spec.weights_batched:
+            def part(W):
+                s = W.shape[-1]
+                return W.expand(*batch, s, s).reshape(-1, s, s).index_select(0, idx) if W.dim() > 2 else W
+            mpc.Q, mpc.R, mpc.P = part(self.Q), part(self.R), part(self.P)
+        warm = sub[-1] if spec.warm else None
+        sol = mpc._solve_eager(point(sub[:k]), point(sub[k:2 * k]), sub[2 * k], warm)
+        for i, v in enumerate((sol.U, sol.dx, sol.cost, sol.status.reason, sol.kkt_residual, sol.clamped)):
+            out[i] = out[i].index_copy(0, idx, v.to(out[i].dtype))
 
     # -- §V-D: iterate about rollouts ------------------------------------------------------------------
     def iterate(self, x0, x_ref, u_ref: Tensor, *, u_init: Tensor | None = None, max_iter: int = 50,
@@ -951,6 +1120,10 @@ class ErrorStateMPC:
         return dU.reshape(*batch, N, m).to(dtype), gap.to(dtype)
 
 
+#: active-set steps of the compiled box QP (:func:`controllers.boxqp.box_qp_fixed`); an element they do not
+#: certify is solved again eagerly
+_QP_ITERS = 8
+
 #: above this many multiply-adds for the condensed Hessians of a batch (``B (N m)² (N+1) n``) a bounded
 #: solve goes through the Riccati form first and condenses only the elements that break a limit
 _RICCATI_FIRST_FLOPS = 3e7
@@ -976,6 +1149,28 @@ def _condensed_qp(es: ErrorSystem, dx0: Tensor, Qs: Tensor, R: Tensor, q: Tensor
     if r is not None:
         g = g + r.reshape(*batch, N * m)
     return Su, free_x, H, g
+
+
+def _plan(Su: Tensor, free_x: Tensor, dU: Tensor, Qs: Tensor, R: Tensor, q: Tensor | None, r: Tensor | None
+          ) -> tuple[Tensor, Tensor, Tensor]:
+    """The plan of a condensed solve ``δU (*B, N m)``: ``(δU (*B, N, m), δX (*B, N+1, n), cost (*B,))``."""
+    batch, N, m = dU.shape[:-1], Su.shape[-3] - 1, R.shape[-1]
+    dX = free_x + (Su @ dU.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)
+    dUr = dU.reshape(*batch, N, m)
+    return dUr, dX, _plan_cost(dX, dUr, Qs, R, q, r)
+
+
+def _plan_cost(dX: Tensor, dU: Tensor, Qs: Tensor, R: Tensor, q: Tensor | None, r: Tensor | None) -> Tensor:
+    """``Σ δxᵀQ_kδx + 2q_kᵀδx + δuᵀRδu + 2r_kᵀδu`` of a plan ``δX (*B, N+1, n)``, ``δU (*B, N, m)``."""
+    m = dU.shape[-1]
+    Rb = R.expand(*dU.shape[:-2], m, m)
+    cost = ((dX.unsqueeze(-2) @ Qs @ dX.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1) \
+        + ((dU.unsqueeze(-2) @ Rb.unsqueeze(-3) @ dU.unsqueeze(-1)).squeeze(-1).squeeze(-1)).sum(-1)
+    if q is not None:
+        cost = cost + 2 * (q * dX).sum((-2, -1))
+    if r is not None:
+        cost = cost + 2 * (r * dU).sum((-2, -1))
+    return cost
 
 
 def _gap_bound(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
@@ -1007,11 +1202,14 @@ def _condense(es: ErrorSystem, dx0: Tensor) -> tuple[Tensor, Tensor]:
     add = torch.cat([Bfull.expand(*batch, N, n, N * m), c.expand(*batch, N, n).unsqueeze(-1)], -1)
     row = torch.cat([dx0.new_zeros(*batch, n, N * m), dx0.expand(*batch, n).unsqueeze(-1)], -1)
     A = A.expand(*batch, N, n, n)
-    rows = [row]
-    for k in range(N):
-        row = A[..., k, :, :] @ row + add[..., k, :, :]
-        rows.append(row)
-    Z = torch.stack(rows, -3)
+
+    def step(t, carry, xs):  # one row block of [S_u | free] from the previous one
+        nxt = xs[0] @ carry[0] + xs[1]
+        return (nxt,), (nxt,)
+
+    # a time loop the compiler sees once when traced (controllers._compiled.scan); a Python loop eagerly
+    _, (rows,) = scan(step, (row,), [A.movedim(-3, 0), add.movedim(-3, 0)], N)
+    Z = torch.cat([row.unsqueeze(-3), rows.movedim(0, -3)], -3)
     return Z[..., :-1], Z[..., -1]
 
 

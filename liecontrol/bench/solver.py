@@ -150,9 +150,11 @@ def _subprocess(script: str, argv: list[str], threads: int) -> tuple[dict, str |
 
 
 # ------------------------------------------------------------------------------------------------ quadrotor
-def _quadrotor_problem(batch: int, horizon: int, dtype: torch.dtype, device: torch.device):
+def _quadrotor_problem(batch: int, horizon: int, dtype: torch.dtype, device: torch.device,
+                       compile: bool = False):
     """The problem of ``reproduce quadrotor``'s batched timing: ``batch`` quadrotors at random points of the
-    circle reference, each from its own perturbed state (seed 0); float64 built, then cast/moved."""
+    circle reference, each from its own perturbed state (seed 0); float64 built, then cast/moved; the MPC
+    with ``compile`` (``ErrorStateMPC(compile=...)``, ``--eager`` turns it off)."""
     from controllers.manifold_mpc import ErrorStateMPC, riccati_terminal_weight
     from controllers.systems import quadrotor_flatness as qf
     from controllers.systems.quadrotor import Quadrotor
@@ -177,7 +179,7 @@ def _quadrotor_problem(batch: int, horizon: int, dtype: torch.dtype, device: tor
     xr = q.state(cast(ref.p[idx]), cast(ref.v[idx]), cast(ref.R[idx]))
     x0 = q.state(cast(p0), cast(ref.v[k]), cast(R0))
     ur = cast(ref.u[idx[:, :-1]])
-    mpc = ErrorStateMPC(q, horizon, cast(Q), cast(R), cast(P), grad="none")
+    mpc = ErrorStateMPC(q, horizon, cast(Q), cast(R), cast(P), grad="none", compile=compile)
     return q, mpc, x0, xr, ur, (Q, R, P, ref, k, idx, p0, R0)
 
 
@@ -206,7 +208,7 @@ def _quadrotor(ctx: _Ctx) -> list[dict]:
     H = ctx.sizes.quad_horizon
     out = []
     for B in ctx.sizes.quad_batches:
-        q, mpc, x0, xr, ur, raw = _quadrotor_problem(B, H, ctx.dtype, ctx.device)
+        q, mpc, x0, xr, ur, raw = _quadrotor_problem(B, H, ctx.dtype, ctx.device, ctx.compile)
         sol = mpc.solve(x0, xr, ur)
         ms = ctx.time(lambda mpc=mpc, x0=x0, xr=xr, ur=ur: mpc.solve(x0, xr, ur))
         anchor = anchor_ms = note = None
