@@ -24,6 +24,14 @@ and ``Ṽ_t = [[P_t, p_t], [p_tᵀ, s_t]]`` is the value function ``x̃ᵀ Ṽ_t
 LAPACK calls for small ``m``; positive pivots certify ``H_uu ≻ 0`` per element), and the unrolled path
 uses a batched Cholesky factorization.  The forward pass runs the closed loop
 ``u_t = K̃_t x̃_t``, ``x̃_{t+1} = F̃_t [u_t; x̃_t]`` in place.
+
+Compiled path (``compiled=True`` of :func:`solve_core` and :func:`lin_sweep`): the same recursions written
+once as pure functions of time-major tensors whose time loop is a :func:`controllers._compiled.scan`, built
+by :func:`controllers._compiled.build` into one program per structure (dynamic batch, cached on disk) —
+the Riccati sweep, the closed-loop rollout and the cost in one call (:func:`_solve_program`), and the
+linear recursions of the implicit gradient (costates, adjoint sweeps) in another (:func:`lin_sweep`).
+Small matrix products there are elementwise products and sums (``_mm``, ``_mv``), which the compiler
+fuses into the loop body.  The eager kernels stay the reference; the two agree to round-off.
 """
 
 from __future__ import annotations
@@ -33,9 +41,11 @@ from dataclasses import dataclass
 
 import torch
 
+from controllers import _compiled
+
 __all__ = ["flat", "assemble", "assemble_dynamics", "assemble_cost", "RiccatiFactors", "backward_pass",
            "backward_pass_graph", "closed_loop", "closed_loop_rollout", "closed_loop_rollout_graph",
-           "solve_core"]
+           "solve_core", "lin_sweep"]
 
 
 def flat(x: torch.Tensor | None, bs: torch.Size, k: int) -> torch.Tensor | None:
@@ -298,10 +308,11 @@ def backward_pass_graph(F, C, VT, T: int, Bt: int, m: int) -> RiccatiFactors:
 
 
 def solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool = False,
-                keep_huu: bool = False, fused: bool = False, stage=None):
+                keep_huu: bool = False, fused: bool = False, stage=None, compiled: bool = False):
     """Solve the canonical LQ problem; returns ``(x, u, J, factors, F)`` flattened to ``(Bt, ...)``.
 
-    ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.
+    ``J`` is the optimal cost without the constant of :meth:`QuadraticCost.canonical`.  ``compiled``: the
+    Riccati sweep and the rollout as one compiled program (:func:`_solve_program`; not with ``graph``).
     """
     n, m = A.shape[-1], B.shape[-1]
     Bt = bs.numel()  # 1 for an unbatched problem, 0 for an empty batch
@@ -310,12 +321,128 @@ def solve_core(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, graph: bool =
     else:  # cost part precomputed by the caller (controllers.riccati.prepare)
         F = assemble_dynamics(A, B, c, bs)
         C, VT = stage
+    x0f = x0.expand(*bs, n).reshape(Bt, n)
+    x0t = torch.cat([x0f, torch.ones(Bt, 1, dtype=x0.dtype, device=x0.device)], -1)
+    if compiled and not graph and Bt > 0:
+        xt, u, J, fac = _solve_program(F, C, VT, x0t, T, Bt, m, keep_huu)
+        return xt[..., :n], u, J, fac, F
     if graph:
         fac = backward_pass_graph(F, C, VT, T, Bt, m)
     else:
         fac = backward_pass(F, C, VT, T, Bt, m, keep_huu, fused)
-    x0f = x0.expand(*bs, n).reshape(Bt, n)
-    x0t = torch.cat([x0f, torch.ones(Bt, 1, dtype=x0.dtype, device=x0.device)], -1)
     xt, u = (closed_loop_rollout_graph if graph else closed_loop_rollout)(F, fac.Kt, x0t, T)
     J = (x0t.unsqueeze(-2) @ fac.V[:, 0] @ x0t.unsqueeze(-1)).reshape(Bt)
     return xt[..., :n], u, J, fac, F
+
+
+# --------------------------------------------------------------------------------------------------
+# compiled path: the same recursions as programs (module docstring)
+# --------------------------------------------------------------------------------------------------
+
+
+def _mv(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``M v`` for tiny ``M (..., a, b)``, ``v (..., b)`` as a product and a sum (fused when compiled)."""
+    return (M * v.unsqueeze(-2)).sum(-1)
+
+
+def _mm(X: torch.Tensor, Y: torch.Tensor) -> torch.Tensor:
+    """``X Y`` for tiny ``X (..., a, b)``, ``Y (..., b, c)`` as a product and a sum (fused when compiled)."""
+    return (X.unsqueeze(-1) * Y.unsqueeze(-3)).sum(-2)
+
+
+def _riccati_step(m: int):
+    """One step of :func:`backward_pass`, out of place: ``H = C̃ + F̃ᵀṼF̃`` and ``m`` Gauss-Jordan pivots;
+    outputs ``(K̃ = -H_uu⁻¹H_ux̃, H_uu, Ṽ, reciprocal pivots)``."""
+
+    def step(t, carry, xs):
+        (V,) = carry
+        Ft, Ct = xs
+        H = Ct + _mm(Ft.mT, _mm(V, Ft))
+        Huu = H[..., :m, :m]
+        k = H.shape[-1]
+        rows = torch.arange(k, device=H.device).unsqueeze(-1)  # (k, 1): a constant of the program
+        invs = []
+        for i in range(m):
+            inv = torch.reciprocal(H[..., i:i + 1, i:i + 1])
+            invs.append(inv[..., 0, 0])
+            r = H[..., i:i + 1, :] * inv  # the pivot row, scaled (as backward_pass: no h_ii − 1 cancellation)
+            H = torch.where(rows == i, r, H - H[..., :, i:i + 1] * r)
+        V = H[..., m:, m:].contiguous()  # a loop carry keeps its layout from step to step
+        return (V,), (-H[..., :m, m:], Huu, V, torch.stack(invs, -1))
+
+    return step
+
+
+def _solve_sweeps(T: int, m: int, F, C, VT, x0t):
+    """The pure LQ solve (batch first, ``F (Bt, TF, n+1, k)``, ``C (Bt, TC, k, k)``, ``VT (Bt, n+1, n+1)``,
+    ``x0t (Bt, n+1)``): ``(K̃ (Bt, T, m, n+1), H_uu (Bt, T, m, m), Ṽ (Bt, T+1, n+1, n+1), pivots (Bt, T, m),
+    x̃ (Bt, T+1, n+1), u (Bt, T, m), J (Bt,))``."""
+    # time-major copies: a loop input that is a view of another input specializes the batch in the trace
+    Ftm, Ctm = F.movedim(1, 0).contiguous(), C.movedim(1, 0).contiguous()
+    (V0,), (Kt, Huu, V, inv) = _compiled.scan(_riccati_step(m), (VT,), (Ftm, Ctm), T, reverse=True)
+
+    def roll(t, carry, xs):
+        (x,) = carry
+        Kk, Ft = xs
+        u = _mv(Kk, x)
+        return (_mv(Ft[..., :, m:], x) + _mv(Ft[..., :, :m], u),), (x, u)
+
+    (xT,), (xs, us) = _compiled.scan(roll, (x0t,), (Kt, Ftm), T)
+    J = (x0t * _mv(V0, x0t)).sum(-1)
+    V = torch.cat([V, VT.unsqueeze(0)], 0)
+    x = torch.cat([xs, xT.unsqueeze(0)], 0)
+    return (Kt.movedim(0, 1), Huu.movedim(0, 1), V.movedim(0, 1), inv.movedim(0, 1), x.movedim(0, 1),
+            us.movedim(0, 1), J)
+
+
+def _solve_program(F, C, VT, x0t, T: int, Bt: int, m: int, keep_huu: bool):
+    """:func:`_solve_sweeps` as a compiled program (shared parts expanded to the batch); returns
+    ``(x̃, u, J, RiccatiFactors)`` as :func:`solve_core`'s eager path does."""
+    args = tuple(v.expand(Bt, *v.shape[1:]).contiguous() for v in (F, C, VT, x0t))
+    prog = _compiled.build("lq_solve", f"T={T};m={m}", lambda *a: _solve_sweeps(T, m, *a), args, (0, 0, 0, 0))
+    Kt, Huu, V, inv, xt, u, J = prog(*args)
+    ok = (inv > 0).all(-1) & torch.isfinite(inv).all(-1)
+    if not keep_huu:
+        Huu, V = None, V[:, [0, T]]
+    return xt, u, J, RiccatiFactors(Kt=Kt, Huu=Huu, V=V, ok=ok)
+
+
+def _lin_sweep_pure(reverse: bool, M, a, y0):
+    """``y`` of the linear recursion over ``T`` steps (batch first: ``M (Bt, TM, n, n)``, ``a (Bt, T, n)``,
+    ``y0 (Bt, n)``): reverse ``y_T = y0``, ``y_t = a_t + M_t y_{t+1}``; forward ``y_0 = y0``,
+    ``y_{t+1} = a_t + M_t y_t``.  Returns ``(Bt, T+1, n)``."""
+    T = a.shape[1]
+
+    def step(t, carry, xs):
+        (y,) = carry
+        Mt, at = xs
+        return (at + _mv(Mt, y),), (y,)
+
+    xs = (M.movedim(1, 0).contiguous(), a.movedim(1, 0).contiguous())  # as in _solve_sweeps
+    (yl,), (ys,) = _compiled.scan(step, (y0,), xs, T, reverse=reverse)
+    # ys[t] is the carry a step received: y_{t+1} in reverse, y_t forward; yl the last one made
+    ys, yl = ys.movedim(0, 1), yl.unsqueeze(1)
+    return torch.cat([yl, ys], 1) if reverse else torch.cat([ys, yl], 1)
+
+
+def lin_sweep(M: torch.Tensor, a: torch.Tensor, y0: torch.Tensor, reverse: bool, compiled: bool = False
+              ) -> torch.Tensor:
+    """The linear recursion of :func:`_lin_sweep_pure` (``M`` with a time dim of 1 or ``T``, batch ``Bt`` or
+    1): eagerly a loop of batched products, or (``compiled``) one program call.  Reverse: ``y (Bt, T+1, n)``
+    with ``y_T = y0`` last (costates); forward: ``y_0 = y0`` first (a closed-loop trajectory)."""
+    Bt, T = a.shape[0], a.shape[1]
+    if compiled and Bt > 0:
+        args = tuple(v.expand(Bt, *v.shape[1:]).contiguous() for v in (M, a, y0))
+        prog = _compiled.build("lq_lin_sweep", f"reverse={reverse}",
+                               lambda *x: (_lin_sweep_pure(reverse, *x),), args, (0, 0, 0))
+        return prog(*args)[0]
+    Mc = M.expand(Bt, *M.shape[1:]) if M.shape[1] > 1 else M.expand(Bt, T, *M.shape[2:])
+    out = torch.empty(Bt, T + 1, y0.shape[-1], 1, dtype=a.dtype, device=a.device)
+    cur = y0.expand(Bt, y0.shape[-1]).unsqueeze(-1)
+    ac = a.unsqueeze(-1)
+    first = T if reverse else 0
+    out[:, first] = cur
+    for t in (range(T - 1, -1, -1) if reverse else range(T)):
+        cur = torch.baddbmm(ac[:, t], Mc[:, t], cur)
+        out[:, t if reverse else t + 1] = cur
+    return out.squeeze(-1)

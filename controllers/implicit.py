@@ -26,12 +26,20 @@ without a gradient in this mode (differentiate them with ``grad="unrolled"`` in
 
 from __future__ import annotations
 
+import dataclasses
+
 import torch
 
 from controllers import _lq_kernels as _k
 from controllers.boxqp import at_lower, masked_hessian
-from controllers.costs import cost_derivatives, hessian_rows, lq_coefficients
-from controllers.dynamics import step_all, trajectory_jacobians
+from controllers.costs import (
+    PeriodicQuadraticCost,
+    QuadraticCost,
+    cost_derivatives,
+    hessian_rows,
+    lq_coefficients,
+)
+from controllers.dynamics import has_analytic_jacobian, step_all, trajectory_jacobians
 
 __all__ = ["LQRFunction", "lqr_implicit", "adjoint_solve", "ilqr_implicit", "reduced_hessian_pd"]
 
@@ -40,9 +48,10 @@ _REFINE_STEPS = 3
 
 
 def adjoint_solve(Phi: torch.Tensor, B: torch.Tensor, K: torch.Tensor, L: torch.Tensor, P: torch.Tensor,
-                  qa: torch.Tensor, ra: torch.Tensor):
+                  qa: torch.Tensor, ra: torch.Tensor, compiled: bool = False):
     """Solve the LQ problem with the stored factors, linear terms ``qa (Bt, T+1, n)``, ``ra (Bt, T, m)``,
-    no drift and ``x_0 = 0``.
+    no drift and ``x_0 = 0``.  ``compiled``: its two sweeps as compiled programs
+    (:func:`controllers._lq_kernels.lin_sweep`).
 
     Args:
         Phi: closed-loop ``A_t + B_t K_t`` ``(Bt, T, n, n)``; B: ``(bB, TB, n, m)``; K: ``(Bt, T, m, n)``;
@@ -52,32 +61,19 @@ def adjoint_solve(Phi: torch.Tensor, B: torch.Tensor, K: torch.Tensor, L: torch.
         ``(dx (Bt, T+1, n), du (Bt, T, m), dlam (Bt, T+1, n))``.
     """
     Bt, T, n = Phi.shape[0], Phi.shape[1], Phi.shape[-1]
-    dt, dev = Phi.dtype, Phi.device
     # p_t = (q_t + K_tᵀ r_t) + Φ_tᵀ p_{t+1},   p_T = q_T
     qhat = qa[:, :T] + torch.matmul(K.mT, ra.unsqueeze(-1)).squeeze(-1)
-    PhiT = Phi.mT.contiguous()
-    p = torch.empty(Bt, T + 1, n, 1, dtype=dt, device=dev)
-    cur = qa[:, T].unsqueeze(-1).contiguous()
-    p[:, T] = cur
-    qhat = qhat.unsqueeze(-1)
-    for t in range(T - 1, -1, -1):
-        cur = torch.baddbmm(qhat[:, t], PhiT[:, t], cur)
-        p[:, t] = cur
-    p = p.squeeze(-1)
+    p = _k.lin_sweep(Phi.mT, qhat, qa[:, T], True, compiled)
     # k_t = -H_uu⁻¹ (r_t + B_tᵀ p_{t+1})
     Bb = B if B.shape[1] > 1 else B.expand(B.shape[0], T, *B.shape[2:])
     qu = ra + torch.matmul(Bb.mT, p[:, 1:].unsqueeze(-1)).squeeze(-1)
     kk = -torch.cholesky_solve(qu.unsqueeze(-1), L)  # (Bt, T, m, 1)
-    Bk = torch.matmul(Bb, kk).expand(Bt, T, n, 1).contiguous()
-    dx = torch.empty(Bt, T + 1, n, 1, dtype=dt, device=dev)
-    cur = torch.zeros(Bt, n, 1, dtype=dt, device=dev)
-    dx[:, 0] = cur
-    for t in range(T):
-        cur = torch.baddbmm(Bk[:, t], Phi[:, t], cur)
-        dx[:, t + 1] = cur
-    du = (torch.matmul(K, dx[:, :T]) + kk).squeeze(-1)
-    dlam = torch.matmul(P, dx).squeeze(-1) + p
-    return dx.squeeze(-1), du, dlam
+    Bk = torch.matmul(Bb, kk).squeeze(-1).expand(Bt, T, n)
+    dx = _k.lin_sweep(Phi, Bk, torch.zeros((), dtype=Phi.dtype, device=Phi.device).expand(Bt, n), False,
+                      compiled)
+    du = (torch.matmul(K, dx[:, :T].unsqueeze(-1)) + kk).squeeze(-1)
+    dlam = _mv(P, dx) + p
+    return dx, du, dlam
 
 
 def _tv(v: torch.Tensor, T: int) -> torch.Tensor:
@@ -89,7 +85,7 @@ def _mv(M: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     return torch.matmul(M, v.unsqueeze(-1)).squeeze(-1)
 
 
-def _refine(Phi, A, B, K, L, P, Q, R, N, qlin, rlin, x, u, steps: int):
+def _refine(Phi, A, B, K, L, P, Q, R, N, qlin, rlin, x, u, steps: int, compiled: bool = False):
     """Iterative refinement of an LQ solution ``(x, u)`` with linear terms ``qlin, rlin`` (either None).
 
     The Riccati gains are computed from value matrices that grow with the cost weights, so the closed-loop
@@ -102,13 +98,14 @@ def _refine(Phi, A, B, K, L, P, Q, R, N, qlin, rlin, x, u, steps: int):
     ``max|ρ|`` is below ``64 ε`` relative to the terms that cancel in it (well-conditioned problems: no
     correction at all) or after ``steps`` corrections (three reach the round-off floor at a weight of
     1e8 in float64; the residual itself cannot certify that floor, its terms cancel too).
-    Returns ``(x, u, λ)`` with ``λ`` consistent with the returned trajectory.
+    Returns ``(x, u, λ)`` with ``λ`` consistent with the returned trajectory.  ``compiled``: the sweeps as
+    compiled programs.
     """
     T = u.shape[1]
     QT = _tv(Q, T + 1)
     Rt, Bt_ = _tv(R, T), _tv(B, T)
     Nt = None if N is None else _tv(N, T)
-    At = _tv(A, T).mT.contiguous()
+    At = A.mT
     fi = torch.finfo(x.dtype)
     tol, tiny = 64 * fi.eps, fi.tiny
     for it in range(steps + 1):
@@ -117,12 +114,7 @@ def _refine(Phi, A, B, K, L, P, Q, R, N, qlin, rlin, x, u, steps: int):
             g = g + qlin
         if Nt is not None:
             g = torch.cat([g[:, :T] + _mv(Nt, u), g[:, T:]], 1)
-        lam = torch.empty_like(g)
-        cur = g[:, T]
-        lam[:, T] = cur
-        for t in range(T - 1, -1, -1):
-            cur = g[:, t] + _mv(At[:, t], cur)
-            lam[:, t] = cur
+        lam = _k.lin_sweep(At, g[:, :T], g[:, T], True, compiled)
         terms = [_mv(Rt, u), _mv(Bt_.mT, lam[:, 1:])]
         if rlin is not None:
             terms.append(rlin)
@@ -133,7 +125,7 @@ def _refine(Phi, A, B, K, L, P, Q, R, N, qlin, rlin, x, u, steps: int):
         rel = rho.abs().flatten(1).amax(1) / sum(v.abs() for v in terms).flatten(1).amax(1).clamp_min(tiny)
         if it == steps or not bool((torch.nan_to_num(rel, nan=0.0, posinf=0.0) > tol).any()):
             return x, u, lam
-        dx, du, _ = adjoint_solve(Phi, B, K, L, P, torch.zeros_like(x), rho)
+        dx, du, _ = adjoint_solve(Phi, B, K, L, P, torch.zeros_like(x), rho, compiled)
         x, u = x + dx, u + du
 
 
@@ -149,17 +141,19 @@ class LQRFunction(torch.autograd.Function):
     """``(A, B, c, Q, R, N, q, r, x0) -> (x, u, J, K, k, ok)`` flattened over the batch ``(Bt, ...)``.
 
     Forward: the Riccati solve of :mod:`controllers.riccati`.  Backward: the implicit gradient of the
-    module docstring.  ``K``, ``k``, ``info`` are non-differentiable outputs.
+    module docstring.  ``K``, ``k``, ``info`` are non-differentiable outputs.  ``compiled``: the forward
+    solve and the sweeps of the backward pass as compiled programs (:mod:`controllers._lq_kernels`).
     """
 
     @staticmethod
-    def forward(ctx, A, B, c, Q, R, N, q, r, x0, T, bs, fused=False):
+    def forward(ctx, A, B, c, Q, R, N, q, r, x0, T, bs, fused=False, compiled=False):
         n, m = A.shape[-1], B.shape[-1]
-        x, u, J, fac, F = _k.solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, keep_huu=True, fused=fused)
+        x, u, J, fac, F = _k.solve_core(A, B, c, Q, R, N, q, r, x0, T, bs, keep_huu=True, fused=fused,
+                                        compiled=compiled)
         Bt = x.shape[0]
         K = fac.Kt[..., :n]
         k = fac.Kt[..., n]
-        ctx.T, ctx.bs, ctx.n, ctx.m = T, bs, n, m
+        ctx.T, ctx.bs, ctx.n, ctx.m, ctx.compiled = T, bs, n, m, compiled
         ctx.shapes = [None if v is None else v.shape for v in (A, B, c, Q, R, N, q, r, x0)]
         ctx.has = [v is not None for v in (A, B, c, Q, R, N, q, r, x0)]
         Bflat = F[..., :n, :m]
@@ -186,9 +180,10 @@ class LQRFunction(torch.autograd.Function):
         # costates and adjoint trajectory refined against the stationarity conditions (see _refine): the
         # plain λ = P x + p and the adjoint sweep lose accuracy like ‖Q‖²ε for large weights
         steps = _REFINE_STEPS
-        x, u, lam = _refine(Phi, A, Bm, K, L, P, Q, R, N, q, r, x, u, steps)
-        dx, du, _ = adjoint_solve(Phi, Bm, K, L, P, -gx, -gu)
-        dx, du, dlam = _refine(Phi, A, Bm, K, L, P, Q, R, N, -gx, -gu, dx, du, steps)
+        cc = ctx.compiled
+        x, u, lam = _refine(Phi, A, Bm, K, L, P, Q, R, N, q, r, x, u, steps, cc)
+        dx, du, _ = adjoint_solve(Phi, Bm, K, L, P, -gx, -gu, cc)
+        dx, du, dlam = _refine(Phi, A, Bm, K, L, P, Q, R, N, -gx, -gu, dx, du, steps, cc)
         # an element whose H_uu was not positive definite (SINGULAR_QUU) has no gradient: its factors are
         # garbage, and 0·NaN would reach the summed gradient of a shared parameter; it contributes zero
         good = ok.all(-1)[:, None, None]
@@ -198,7 +193,7 @@ class LQRFunction(torch.autograd.Function):
         eu = torch.where(good, -du + gJ1 * u, 0.0)
         el = -dlam[:, 1:] + gJ1 * lam[:, 1:]
         needs = ctx.needs_input_grad
-        out = [None] * 12
+        out = [None] * 13
 
         def fit(g: torch.Tensor, idx: int, k: int) -> torch.Tensor:
             shp = ctx.shapes[idx]
@@ -230,9 +225,10 @@ class LQRFunction(torch.autograd.Function):
         return tuple(out)
 
 
-def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, fused: bool = False):
+def lqr_implicit(A, B, c, Q, R, N, q, r, x0, T: int, bs: torch.Size, fused: bool = False,
+                 compiled: bool = False):
     """Run :class:`LQRFunction`; returns flattened ``(x, u, J, K, k, ok)``."""
-    return LQRFunction.apply(A, B, c, Q, R, N, q, r, x0, T, bs, fused)
+    return LQRFunction.apply(A, B, c, Q, R, N, q, r, x0, T, bs, fused, compiled)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -255,7 +251,8 @@ def _bound_motion(u: torch.Tensor, free: torch.Tensor, lo: torch.Tensor | None,
 
 
 def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, free: torch.Tensor,
-                  bs: torch.Size, lo: torch.Tensor | None = None, hi: torch.Tensor | None = None):
+                  bs: torch.Size, lo: torch.Tensor | None = None, hi: torch.Tensor | None = None, *,
+                  compile: bool = False):
     """Give iLQR's solution ``x, u`` of ``problem`` (an :class:`~controllers.ilqr.ILQRProblem`) the implicit
     derivatives of its KKT conditions (:mod:`controllers.ilqr` docstring).
 
@@ -265,27 +262,21 @@ def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
     (``lo``/``hi``, ``(*B, T, m)``, differentiable), so ``∂u_c/∂b = 1`` and the free controls and states
     respond through the same Newton step (``δb`` drives the linearized dynamics through ``B`` and the
     stationarity of the free controls through the Hessian's cross terms).
+
+    ``compile`` (:attr:`~controllers.ilqr.ILQROptions.compile`): the costates, the LQ solve of the Newton
+    step and the sweeps of its backward pass run as compiled programs (:mod:`controllers._lq_kernels`);
+    the same values and gradients as the eager path up to round-off.
     """
-    dyn, cost = problem.dynamics, problem.cost
     T, n, m = problem.T, problem.n, problem.m
     x0 = problem.x0.expand(*bs, n)
     x0 = torch.where(torch.isfinite(x0), x0, torch.zeros((), dtype=x0.dtype, device=x0.device))
     x, u = x.detach(), u.detach()
-    A, B = trajectory_jacobians(dyn, x, u)  # time-major
-    A, B = A.detach(), B.detach()
-    lam = _costates(cost, x, u, A, bs)
+    newton = _newton_data_analytic if _analytic_ok(problem) else _newton_data_autograd
     with torch.enable_grad():
-        xs = x.clone().requires_grad_(True)
-        us = u.clone().requires_grad_(True)
-        cdyn = step_all(dyn, xs[..., :T, :], us) - xs[..., 1:, :]
-        c0 = x0 - xs[..., 0, :]
-        L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * cdyn).sum() + (lam[..., 0, :] * c0).sum()
-        rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
+        rx, ru, cdyn, c0, Hxx, Hxu, Huu, A, B = newton(problem, x0, x, u, bs, compile)
         db = _bound_motion(u, free, lo, hi, ru)
-        moved = db is not None or any(v.requires_grad for v in (c0, cdyn))
-        if not moved and not _depends_on_params(rx, ru, xs, us):
-            return x, u
-        Hxx, Hxu, Huu = hessian_rows(rx, ru, xs, us, n, m)
+        if db is None and not any(v.requires_grad for v in (rx, ru, cdyn, c0)):
+            return x, u  # nothing upstream has a graph: no derivative to give
         fm = free.to(x.dtype)
         Bf = B.movedim(0, -3)
         if db is not None:
@@ -301,21 +292,92 @@ def ilqr_implicit(problem, x0s: torch.Tensor, x: torch.Tensor, u: torch.Tensor, 
         Q, R, N, q, r = lq_coefficients(rx, ru * fm, Hxx, (Hxu[..., :T, :, :] * fm.unsqueeze(-2)).mT,
                                         masked_hessian(Huu, free))
         A = A.movedim(0, -3).expand(*bs, T, n, n)
-        dx, du, *_ = lqr_implicit(A, Bm, cdyn, Q, R, N, q, r, c0, T, bs)
+        dx, du, *_ = lqr_implicit(A, Bm, cdyn, Q, R, N, q, r, c0, T, bs, compiled=compile)
         dx, du = dx.reshape(*bs, T + 1, n), du.reshape(*bs, T, m)
     u = u + (du - du.detach())
     return x + (dx - dx.detach()), u if db is None else u + db
 
 
-def _costates(cost, x: torch.Tensor, u: torch.Tensor, A: torch.Tensor, bs: torch.Size) -> torch.Tensor:
+def _newton_data_autograd(problem, x0, x, u, bs, compile):
+    """The data of the Newton step by autograd: the Lagrangian's gradient ``(rx, ru)`` with its graph
+    to the parameters, its Hessian blocks (constants), the dynamics' residual ``cdyn`` and ``c0`` with
+    theirs, and ``A, B`` (time-major, constants).  Any cost and system."""
+    dyn, cost = problem.dynamics, problem.cost
+    T, n, m = problem.T, problem.n, problem.m
+    A, B = trajectory_jacobians(dyn, x, u)  # time-major
+    A, B = A.detach(), B.detach()
+    lam = _costates(cost, x, u, A, bs, compile)
+    xs = x.clone().requires_grad_(True)
+    us = u.clone().requires_grad_(True)
+    cdyn = step_all(dyn, xs[..., :T, :], us) - xs[..., 1:, :]
+    c0 = x0 - xs[..., 0, :]
+    L = cost.evaluate(xs, us).sum() + (lam[..., 1:, :] * cdyn).sum() + (lam[..., 0, :] * c0).sum()
+    rx, ru = torch.autograd.grad(L, (xs, us), create_graph=True)
+    Hxx, Hxu, Huu = hessian_rows(rx, ru, xs, us, n, m)
+    return rx, ru, cdyn, c0, Hxx, Hxu, Huu, A, B
+
+
+def _analytic_ok(problem) -> bool:
+    """Whether :func:`_newton_data_analytic` applies: a quadratic cost (analytic derivatives, differentiable
+    in its weights) and a system with an analytic Jacobian whose fields carry no graph (plain numbers or
+    tensors that do not require grad), so that the dynamics add a constant curvature and residual."""
+    dyn, cost = problem.dynamics, problem.cost
+    if not isinstance(cost, (QuadraticCost, PeriodicQuadraticCost)) or not has_analytic_jacobian(dyn):
+        return False
+    if not dataclasses.is_dataclass(dyn):
+        return False
+    for f in dataclasses.fields(dyn):
+        v = getattr(dyn, f.name)
+        if isinstance(v, torch.Tensor):
+            if v.requires_grad:
+                return False
+        elif not (v is None or isinstance(v, (bool, int, float, str))):
+            return False  # a callable (NonlinearDynamics) may close over parameters
+    return True
+
+
+def _newton_data_analytic(problem, x0, x, u, bs, compile):
+    """:func:`_newton_data_autograd` without differentiating the Lagrangian twice: the cost's exact
+    derivatives (:meth:`QuadraticCost.derivatives`, with their graph to the weights), the analytic
+    Jacobians ``A, B`` (one call) and the dynamics' curvature ``Σ λ_{t+1}ᵀ f(x_t, u_t)`` as the derivative
+    of ``A_tᵀλ_{t+1}``, ``B_tᵀλ_{t+1}`` (one level of autograd on the Jacobian, constants).  With
+    ``∂L/∂x_t = ∂l/∂x_t + A_tᵀλ_{t+1} − λ_t`` (``t < T``), ``∂L/∂x_T = ∂l/∂x_T − λ_T``,
+    ``∂L/∂u_t = ∂l/∂u_t + B_tᵀλ_{t+1}``: the same data to round-off (the weights are symmetric)."""
+    dyn, cost = problem.dynamics, problem.cost
+    T, n, m = problem.T, problem.n, problem.m
+    xs = x.clone().requires_grad_(True)
+    us = u.clone().requires_grad_(True)
+    Ag, Bg = trajectory_jacobians(dyn, xs, us)  # time-major, with a graph to xs, us where they depend
+    A, B = Ag.detach(), Bg.detach()
+    lam = _costates(cost, x, u, A, bs, compile)
+    lam1 = lam[..., 1:, :].movedim(-2, 0)  # (T, *B, n)
+    gxd = (Ag.mT @ lam1.unsqueeze(-1)).squeeze(-1).movedim(0, -2)  # (*B, T, n)
+    gud = (Bg.mT @ lam1.unsqueeze(-1)).squeeze(-1).movedim(0, -2)
+    gxd = torch.cat([gxd, torch.zeros_like(gxd[..., :1, :])], -2)
+    Hxx, Hxu, Huu = hessian_rows(gxd, gud, xs, us, n, m)
+    gx, gu, cHxx, cHux, cHuu = cost.derivatives(x, u)
+    Hxx = Hxx + cHxx.detach()
+    Huu = Huu + cHuu.detach()
+    if cHux is not None:
+        cHxu = cHux.detach().mT
+        Hxu = Hxu + torch.cat([cHxu, torch.zeros_like(cHxu[..., :1, :, :])], -3)
+    rx = gx + gxd.detach() - lam
+    ru = gu + gud.detach()
+    with torch.no_grad():
+        cdyn = step_all(dyn, x[..., :T, :], u) - x[..., 1:, :]
+    return rx, ru, cdyn, x0 - x[..., 0, :], Hxx, Hxu, Huu, A, B
+
+
+def _costates(cost, x: torch.Tensor, u: torch.Tensor, A: torch.Tensor, bs: torch.Size,
+              compiled: bool = False) -> torch.Tensor:
     """``λ (*B, T+1, n)``: ``λ_T = ∂l/∂x_T``, ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}`` (``A`` time-major)."""
     T, n = u.shape[-2], x.shape[-1]
     with torch.no_grad():
         gx, *_ = cost_derivatives(cost, x, u)
-        lam = [gx[..., T, :]]
-        for t in range(T - 1, -1, -1):
-            lam.append(gx[..., t, :] + (A[t].mT @ lam[-1].unsqueeze(-1)).squeeze(-1))
-        return torch.stack(lam[::-1], -2).expand(*bs, T + 1, n)
+        gx = gx.expand(*bs, T + 1, n).reshape(-1, T + 1, n)
+        M = A.mT.expand(T, *bs, n, n).reshape(T, -1, n, n).movedim(0, 1)
+        lam = _k.lin_sweep(M, gx[:, :T], gx[:, T], True, compiled)
+        return lam.reshape(*bs, T + 1, n)
 
 
 def reduced_hessian_pd(problem, x: torch.Tensor, u: torch.Tensor, free: torch.Tensor,
@@ -349,19 +411,3 @@ def reduced_hessian_pd(problem, x: torch.Tensor, u: torch.Tensor, free: torch.Te
     with torch.no_grad():
         fac = _k.solve_core(A, Bm, None, Q, R, N, None, None, x[..., 0, :], T, bs)[3]
     return fac.ok.all(-1).reshape(bs)
-
-
-def _depends_on_params(rx: torch.Tensor, ru: torch.Tensor, xs: torch.Tensor, us: torch.Tensor) -> bool:
-    """Whether the stationarity residual has a graph to anything other than the trajectory itself."""
-    seen, stack = set(), [v.grad_fn for v in (rx, ru) if v.grad_fn is not None]
-    own = {id(xs), id(us)}
-    while stack:
-        fn = stack.pop()
-        if fn is None or id(fn) in seen:
-            continue
-        seen.add(id(fn))
-        var = getattr(fn, "variable", None)
-        if var is not None and id(var) not in own and var.requires_grad:
-            return True
-        stack.extend(nf for nf, _ in fn.next_functions)
-    return False

@@ -188,7 +188,10 @@ class MPCExtractor(nn.Module):
     Args:
         task: the task (its ``system`` is the MPC's model, ``u_max`` its limits).
         features_dim: size of the observation features (SB3's ``FlattenExtractor``: ``obs_dim``).
-        horizon, max_iter, grad, options: of the MPC (``options`` overrides ``max_iter``).
+        horizon, max_iter, grad, options: of the MPC (``options`` overrides ``max_iter`` and ``compile``).
+        compile: iLQR's time sweeps and the implicit gradient's LQ kernels as compiled programs
+            (:attr:`~controllers.ilqr.ILQROptions.compile`; the first call builds them, a few seconds each,
+            cached on disk): the same actions and gradients to round-off, several times fewer kernel launches.
         cost_net_arch, log_scale_range, target_offset, wrap_angles, terminal_factor: of
             :class:`LearnedTaskCost`.
         vf_arch, activation_fn: the critic MLP.
@@ -199,7 +202,7 @@ class MPCExtractor(nn.Module):
     """
 
     def __init__(self, task: Task, features_dim: int, *, horizon: int, max_iter: int = 5,
-                 grad: str = "implicit", options: ILQROptions | None = None,
+                 grad: str = "implicit", options: ILQROptions | None = None, compile: bool = True,
                  cost_net_arch: list[int] = (64, 64), log_scale_range: float = 0.5,
                  target_offset: float | list[float] = 0.1, vf_arch: list[int] = (64, 64),
                  activation_fn: type[nn.Module] = nn.Tanh, wrap_angles: bool = True,
@@ -213,7 +216,7 @@ class MPCExtractor(nn.Module):
                                target_offset=target_offset, activation_fn=activation_fn,
                                wrap_angles=wrap_angles, terminal_factor=terminal_factor)
         umax = torch.tensor(task.u_max(), dtype=torch.float32)
-        opts = options if options is not None else ILQROptions(max_iter=max_iter)
+        opts = options if options is not None else ILQROptions(max_iter=max_iter, compile=bool(compile))
         self.mpc = MPCPolicy(task.system, horizon, cost, u_lower=-umax, u_upper=umax, grad=grad, options=opts)
         self.register_buffer("u_max", umax)
         self.register_buffer("nonfinite_actions", torch.zeros((), dtype=torch.int64), persistent=False)
@@ -256,7 +259,8 @@ class MPCActorCriticPolicy(ActorCriticPolicy):
         horizon: MPC horizon (default :data:`DEFAULT_MPC_HORIZON`, else 20).
         max_iter: iLQR iterations per call (cold start every call).
         grad: ``"implicit"`` (default) or ``"unrolled"`` gradients through the solve.
-        ilqr_options: a full :class:`~controllers.ilqr.ILQROptions` (overrides ``max_iter``).
+        ilqr_options: a full :class:`~controllers.ilqr.ILQROptions` (overrides ``max_iter`` and ``compile``).
+        compile: compiled solver sweeps (default True; :class:`MPCExtractor`).
         cost_net_arch, log_scale_range, target_offset, wrap_angles: of :class:`LearnedTaskCost`.
         terminal_factor: of :class:`LearnedTaskCost` (default :data:`DEFAULT_TERMINAL_FACTOR`, else None:
             the task's terminal weight).
@@ -266,7 +270,8 @@ class MPCActorCriticPolicy(ActorCriticPolicy):
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, lr_schedule, *,
                  task: Task | str, horizon: int | None = None, max_iter: int = 5, grad: str = "implicit",
-                 ilqr_options: ILQROptions | None = None, cost_net_arch: list[int] | None = None,
+                 ilqr_options: ILQROptions | None = None, compile: bool = True,
+                 cost_net_arch: list[int] | None = None,
                  log_scale_range: float = 0.5, target_offset: float | list[float] = 0.1,
                  wrap_angles: bool = True, terminal_factor: float | None = None,
                  log_std_init: float = -1.0, ortho_init: bool = False, use_sde: bool = False, **kwargs):
@@ -285,6 +290,7 @@ class MPCActorCriticPolicy(ActorCriticPolicy):
         self.mpc_task = t
         self.horizon = horizon if horizon is not None else DEFAULT_MPC_HORIZON.get(t.name, 20)
         self.max_iter, self.grad, self.ilqr_options = max_iter, grad, ilqr_options
+        self.compile_sweeps = bool(compile)  # not ``self.compile``: nn.Module.compile is a method
         self.cost_net_arch = [64, 64] if cost_net_arch is None else list(cost_net_arch)
         self.log_scale_range, self.target_offset = log_scale_range, target_offset
         self.wrap_angles = bool(wrap_angles)
@@ -298,7 +304,8 @@ class MPCActorCriticPolicy(ActorCriticPolicy):
         vf = arch.get("vf", [64, 64]) if isinstance(arch, dict) else list(arch)
         self.mlp_extractor = MPCExtractor(
             self.mpc_task, self.features_dim, horizon=self.horizon, max_iter=self.max_iter, grad=self.grad,
-            options=self.ilqr_options, cost_net_arch=self.cost_net_arch, log_scale_range=self.log_scale_range,
+            options=self.ilqr_options, compile=self.compile_sweeps, cost_net_arch=self.cost_net_arch,
+            log_scale_range=self.log_scale_range,
             target_offset=self.target_offset, vf_arch=vf, activation_fn=self.activation_fn,
             wrap_angles=self.wrap_angles, terminal_factor=self.terminal_factor)
 
@@ -317,7 +324,8 @@ class MPCActorCriticPolicy(ActorCriticPolicy):
         data.pop("ortho_init", None)
         data.pop("use_sde", None)
         data.update(task=self.task_arg, horizon=self.horizon, max_iter=self.max_iter, grad=self.grad,
-                    ilqr_options=self.ilqr_options, cost_net_arch=self.cost_net_arch,
+                    ilqr_options=self.ilqr_options, compile=self.compile_sweeps,
+                    cost_net_arch=self.cost_net_arch,
                     log_scale_range=self.log_scale_range, target_offset=self.target_offset,
                     wrap_angles=self.wrap_angles, terminal_factor=self.terminal_factor)
         return data
