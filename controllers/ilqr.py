@@ -525,7 +525,7 @@ def ilqr(
     diverged = reason == int(Reason.DIVERGED)
     x0s = torch.where(diverged.unsqueeze(-1), zero, x0s)  # as _solve carried it on
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
-        x, u = ilqr_implicit(problem, x0s, x, u, free, bs, lo, hi)
+        x, u = ilqr_implicit(problem, x0s, x, u, free, bs, lo, hi, compile=bool(opts.compile))
     with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
         cost = problem.cost.evaluate(x, u).expand(bs)
     nanv = torch.full((), math.nan, **kw)

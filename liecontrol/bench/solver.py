@@ -399,7 +399,7 @@ def _mpc_head(ctx: _Ctx) -> list[dict]:
         env = TaskVectorEnv(task, 1)
         spaces = (env.single_observation_space, env.single_action_space)
         torch.manual_seed(0)
-        ours = MPCActorCriticPolicy(*spaces, lambda _: 3e-4, task=task).to(ctx.device)
+        ours = MPCActorCriticPolicy(*spaces, lambda _: 3e-4, task=task, compile=ctx.compile).to(ctx.device)
         mlp = ActorCriticPolicy(*spaces, lambda _: 3e-4).to(ctx.device)
         for B in ctx.sizes.head_batches:
             g = torch.Generator().manual_seed(B)

@@ -162,3 +162,22 @@ def test_the_fingerprint_follows_the_fields_and_the_source_of_the_class(tmp_path
     assert _compiled.fingerprint(Pendulum(length=torch.tensor(1.0, dtype=D, requires_grad=True))) is None
     other = _compiled.fingerprint(Pendulum(length=torch.tensor(1.5, dtype=D)))
     assert other is not None and other != _compiled.fingerprint(Pendulum())
+
+
+def test_implicit_gradients_through_compiled_solves_equal_the_eager_ones():
+    """``ILQROptions(compile=True)`` also compiles the implicit step (the LQ solve and its adjoint sweeps)."""
+    p = _swingup(3)
+    grads = []
+    for comp in (False, True):
+        R = torch.tensor([[0.01]], dtype=D, requires_grad=True)
+        ref = torch.tensor([math.pi, 0.0], dtype=D, requires_grad=True)
+        cost = QuadraticCost(Q=p.cost.Q, R=R, x_ref=ref)
+        # wide limits: free controls depend on R (a clamped one does not)
+        prob = ILQRProblem(p.dynamics, cost, p.x0, p.horizon, u_lower=-30.0, u_upper=30.0)
+        sol = ilqr(prob, options=ILQROptions(max_iter=60, compile=comp))
+        assert (sol.status.reason == int(Reason.CONVERGED)).all() and not sol.clamped.all()
+        (sol.u.square().sum() + sol.x[..., -1, 1].sum()).backward()
+        grads.append((sol.u.detach(), R.grad, ref.grad))
+    for a, b in zip(*grads):
+        torch.testing.assert_close(b, a, atol=1e-9, rtol=1e-9)
+    assert grads[0][1].abs().item() > 0 and grads[0][2].abs().sum().item() > 0
