@@ -3,7 +3,7 @@
 The eager sweeps are the reference: the compiled ones must give the same values (to round-off), the same
 statuses and the same iteration counts, for any batch size (one program serves them all), with one bad
 element in the batch, and reload from the disk cache without building again.  Each program takes a few
-seconds to build, so the tests share one cache directory.
+seconds to build, so the tests share the suite's cache directory (tests/conftest.py).
 """
 
 import math
@@ -20,14 +20,6 @@ from controllers.problem import Reason
 from controllers.systems import Pendulum
 
 D = torch.float64
-
-
-@pytest.fixture(scope="module", autouse=True)
-def _cache(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("LIECONTROL_CACHE", str(tmp_path_factory.mktemp("aoti")))
-    yield
-    mp.undo()
 
 
 def _swingup(B: int, T: int = 30):
@@ -127,7 +119,10 @@ def test_a_program_that_cannot_be_built_warns_and_runs_eagerly(monkeypatch, tmp_
     _assert_same(ilqr(p, grad="none", options=ILQROptions(max_iter=40)), comp, tol=0.0)
 
 
-def test_a_cached_file_that_does_not_load_is_rebuilt(monkeypatch):
+def test_a_cached_file_that_does_not_load_is_rebuilt(monkeypatch, tmp_path):
+    # a cache of its own: other test workers load the shared one at the same time
+    monkeypatch.setenv("LIECONTROL_CACHE", str(tmp_path))
+    monkeypatch.setattr(_compiled, "_PROGRAMS", {})
     p = _swingup(2)
     ref = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
     files = sorted(_compiled.cache_dir().glob("ilqr_kkt-*.pt2"))

@@ -25,14 +25,6 @@ from torchlie.manifolds import ProductState
 D = torch.float64
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _cache(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("LIECONTROL_CACHE", str(tmp_path_factory.mktemp("aoti")))
-    yield
-    mp.undo()
-
-
 @pytest.fixture(scope="module")
 def quad():
     q = Quadrotor()

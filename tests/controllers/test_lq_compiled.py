@@ -20,14 +20,6 @@ from controllers.systems import Pendulum
 D = torch.float64
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _cache(tmp_path_factory):
-    mp = pytest.MonkeyPatch()
-    mp.setenv("LIECONTROL_CACHE", str(tmp_path_factory.mktemp("aoti")))
-    yield
-    mp.undo()
-
-
 def _lq(B: int, T: int = 6, n: int = 3, m: int = 2, dtype=D, seed: int = 0):
     g = torch.Generator().manual_seed(seed)
     r = lambda *s: torch.randn(*s, generator=g, dtype=dtype)
