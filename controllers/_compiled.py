@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import inspect
+import logging
 import os
 import tempfile
 import threading
@@ -271,13 +272,25 @@ def _compile(fn, example, batch_dims, path: Path) -> None:
         # torch's own deprecations inside export/inductor, not ours to act on
         warnings.filterwarnings("ignore", category=FutureWarning, module=r"torch\..*")
         warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch\..*")
-        ep = torch.export.export(_Wrap(fn), example, dynamic_shapes=(shapes,))  # forward(*args)
-        # built next to its final place and renamed: a concurrent process never loads half a file
-        fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=path.parent)
-        os.close(fd)
+        # inductor logs one line per linalg call it routes through its proxy executor: noise to a user
+        ir_log = logging.getLogger("torch._inductor.ir")
+        level = ir_log.level
+        ir_log.setLevel(logging.ERROR)
         try:
-            torch._inductor.aoti_compile_and_package(ep, package_path=tmp)
-            os.replace(tmp, path)
+            ep = torch.export.export(_Wrap(fn), example, dynamic_shapes=(shapes,))  # forward(*args)
+            _package(ep, path)
         finally:
-            if os.path.exists(tmp):
-                os.remove(tmp)
+            ir_log.setLevel(level)
+
+
+def _package(ep, path: Path) -> None:
+    """AOTInductor-compile the exported program ``ep`` into the package file ``path``."""
+    # built next to its final place and renamed: a concurrent process never loads half a file
+    fd, tmp = tempfile.mkstemp(suffix=".pt2", dir=path.parent)
+    os.close(fd)
+    try:
+        torch._inductor.aoti_compile_and_package(ep, package_path=tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)

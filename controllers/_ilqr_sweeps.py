@@ -19,6 +19,7 @@ from torch import Tensor
 
 from controllers import _compiled
 from controllers.boxqp import box_qp, masked_hessian
+from torchlie._batch import broadcast_shapes
 
 __all__ = ["Backward", "backward_pass", "kkt_parts", "forward_candidates", "can_compile_backward"]
 
@@ -51,7 +52,7 @@ def _stage_matrices(A, B, gx, gu, Hxx, Hux, Huu, bs):
     """``(F̃ (T, *B, n+1, n+m+1), H̃ (T, *B, n+m+1, n+m+1), Ṽ_T (*B, n+1, n+1))`` for all steps at once."""
     T, n, m = A.shape[0], A.shape[-1], B.shape[-1]
     kw = dict(dtype=A.dtype, device=A.device)
-    lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    lead = broadcast_shapes(A.shape[:-2], B.shape[:-2])
     Ft = torch.cat([A.expand(*lead, n, n), B.expand(*lead, n, m), torch.zeros(*lead, n, 1, **kw)], -1)
     last = torch.cat([torch.zeros(n + m, **kw), torch.ones(1, **kw)])
     F = torch.cat([Ft, last.expand(*lead, 1, n + m + 1)], -2)

@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import torch
 
+from torchlie._batch import broadcast_shapes
+
 
 def enum_arg(cls, value, name: str, fn: str):
     """``cls(value)`` for a mode argument, with an error that names the argument and the choices."""
@@ -211,7 +213,7 @@ def time_major(v: torch.Tensor | None, k: int, T: int, nb: int) -> torch.Tensor 
 def broadcast_batch(owner: str, shapes: dict[str, torch.Size], note: str = "") -> torch.Size:
     """The broadcast of the named batch shapes, or a ``ValueError`` naming every field and its shape."""
     try:
-        return torch.broadcast_shapes(*shapes.values())
+        return broadcast_shapes(*shapes.values())
     except RuntimeError as e:
         named = ", ".join(f"{k} {tuple(v)}" for k, v in shapes.items())
         raise ValueError(f"{owner}: batch dims do not broadcast: {named}{note}") from e

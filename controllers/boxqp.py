@@ -104,6 +104,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchlie._batch import broadcast_shapes
+
 __all__ = ["BoxQPStatus", "BoxQPResult", "box_qp", "masked_hessian", "at_lower"]
 
 
@@ -386,7 +388,7 @@ def _inputs(H, g, lower, upper, x0, check: bool):
     if x0 is not None and not isinstance(x0, Tensor):
         raise TypeError(f"box_qp: argument 'x0' must be a torch.Tensor or None, got {type(x0).__name__}")
     dtype, device = H.dtype, H.device
-    batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1])
+    batch = broadcast_shapes(H.shape[:-2], g.shape[:-1])
     for name, v in (("lower", lower), ("upper", upper), ("x0", x0)):
         if isinstance(v, Tensor) and (v.dtype != dtype or v.device != device):
             raise TypeError(f"box_qp: argument '{name}' must have H's dtype and device ({dtype}, {device}), "

@@ -51,6 +51,7 @@ from controllers._validate import (
     time_sum,
     timed,
 )
+from torchlie._batch import broadcast_shapes
 
 __all__ = [
     "Cost",
@@ -152,7 +153,7 @@ class QuadraticCost:
         trailing = {"Q": 2, "R": 2, "x_ref": 1, "u_ref": 1, "N": 2, "q": 1, "r": 1}
         allf = {"Q": Q, "R": R, **opt}
         try:
-            torch.broadcast_shapes(*[batch_dims(v, trailing[k]) for k, v in allf.items()])
+            broadcast_shapes(*[batch_dims(v, trailing[k]) for k, v in allf.items()])
         except RuntimeError as e:
             shapes = ", ".join(f"{k} {tuple(v.shape)}" for k, v in allf.items())
             raise ValueError(f"{own}: batch dims do not broadcast: {shapes}") from e
@@ -194,7 +195,7 @@ class QuadraticCost:
     @property
     def batch_shape(self) -> torch.Size:
         tr = {"Q": 2, "R": 2, "x_ref": 1, "u_ref": 1, "N": 2, "q": 1, "r": 1}
-        return torch.broadcast_shapes(*[batch_dims(getattr(self, k), d) for k, d in tr.items()
+        return broadcast_shapes(*[batch_dims(getattr(self, k), d) for k, d in tr.items()
                                         if getattr(self, k) is not None])
 
     @property
@@ -237,7 +238,7 @@ class QuadraticCost:
         if precision.dim() == 2:
             precision = precision.expand(K, n, n)
         dev, dt = targets.device, targets.dtype
-        batch = torch.broadcast_shapes(targets.shape[:-2], precision.shape[:-3])
+        batch = broadcast_shapes(targets.shape[:-2], precision.shape[:-3])
         Q = torch.zeros(*batch, T + 1, n, n, dtype=dt, device=dev)
         mu = torch.zeros(*batch, T + 1, n, dtype=dt, device=dev)
         idx = times_t.to(dev)

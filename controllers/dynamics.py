@@ -53,6 +53,7 @@ from controllers._validate import (
     time_slice,
     timed,
 )
+from torchlie._batch import broadcast_shapes
 
 __all__ = [
     "System",
@@ -112,7 +113,7 @@ class LinearDynamics:
         T = max(sizes.values())
         check_time(sizes, T, own, "all time-varying fields must share one horizon")
         try:
-            torch.broadcast_shapes(batch_dims(A, 2), batch_dims(B, 2),
+            broadcast_shapes(batch_dims(A, 2), batch_dims(B, 2),
                                    *([] if c is None else [batch_dims(c, 1)]))
         except RuntimeError as e:
             raise ValueError(f"{own}: batch dims of A {tuple(A.shape)}, B {tuple(B.shape)}"
@@ -141,7 +142,7 @@ class LinearDynamics:
 
     @property
     def batch_shape(self) -> torch.Size:
-        return torch.broadcast_shapes(batch_dims(self.A, 2), batch_dims(self.B, 2),
+        return broadcast_shapes(batch_dims(self.A, 2), batch_dims(self.B, 2),
                                       *([] if self.c is None else [batch_dims(self.c, 1)]))
 
     @property
@@ -245,7 +246,7 @@ def _full_batch(d: Any, x: torch.Tensor, u: torch.Tensor, t0: int) -> torch.Size
     """Batch shape of a step along ``x (*B, T, n)``, ``u (*B, T, m)``, including the batch dims of the
     system's own parameters (e.g. one pendulum length per element), learnt from one step."""
     y = d.step(x[..., 0, :], u[..., 0, :], t0)
-    return torch.broadcast_shapes(x.shape[:-2], u.shape[:-2], y.shape[:-1])
+    return broadcast_shapes(x.shape[:-2], u.shape[:-2], y.shape[:-1])
 
 
 def _fold_time(d: Any, x: torch.Tensor, u: torch.Tensor, t0: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -269,7 +270,7 @@ def rollout(d: System, x0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
     xs = [x0]
     for t in range(u.shape[-2]):
         xs.append(d.step(xs[-1], u[..., t, :], t))
-    shape = torch.broadcast_shapes(*[v.shape for v in xs])
+    shape = broadcast_shapes(*[v.shape for v in xs])
     return torch.stack([v.expand(shape) for v in xs], dim=-2)
 
 
@@ -307,14 +308,14 @@ def _jacobians(f, x: torch.Tensor, u: torch.Tensor, t: int, method: JacobianMeth
     if fn is None:
         raise TypeError(f"jacobians: 'f' must be a system or a callable f(x, u, t), got {type(f).__name__}")
     jac = None if isinstance(f, LinearDynamics) else getattr(f, "jacobian", None)
-    bs = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+    bs = broadcast_shapes(x.shape[:-1], u.shape[:-1])
     n, m = x.shape[-1], u.shape[-1]
     x = x.expand(*bs, n)
     u = u.expand(*bs, m)
     y = (lambda: fn(x, u, t) if value else None)
     if isinstance(f, LinearDynamics) and method in (JacobianMethod.AUTO, JacobianMethod.ANALYTIC):
         A, B = time_slice(f.A, t, 2), time_slice(f.B, t, 2)
-        full = torch.broadcast_shapes(bs, A.shape[:-2], B.shape[:-2])  # per-element matrices
+        full = broadcast_shapes(bs, A.shape[:-2], B.shape[:-2])  # per-element matrices
         return y(), A.expand(*full, n, n), B.expand(*full, n, m)
     if method is JacobianMethod.AUTO:
         method = JacobianMethod.ANALYTIC if jac is not None else JacobianMethod.VMAP
@@ -323,7 +324,7 @@ def _jacobians(f, x: torch.Tensor, u: torch.Tensor, t: int, method: JacobianMeth
             raise ValueError("jacobians: method='analytic' needs a system with a 'jacobian'")
         A, B = jac(x, u, t)
         # a model's parameters may carry batch dims of their own (e.g. one pendulum length per element)
-        full = torch.broadcast_shapes(bs, A.shape[:-2], B.shape[:-2])
+        full = broadcast_shapes(bs, A.shape[:-2], B.shape[:-2])
         return y(), A.expand(*full, n, n), B.expand(*full, n, m)
     if method is JacobianMethod.VMAP:
         xf, uf = x.reshape(-1, n), u.reshape(-1, m)

@@ -35,6 +35,7 @@ from torch.autograd.function import once_differentiable
 from controllers._validate import all_finite
 from controllers.problem import Reason, SolverStatus
 from torchlie import so3
+from torchlie._batch import broadcast_shapes
 from torchlie.manifolds import SE3
 
 __all__ = ["IKResult", "dls_joint_velocity", "joint_limit_gradient", "pose_error", "resolved_rate_step",
@@ -60,7 +61,7 @@ def joint_limit_gradient(q: Tensor, q_min: Tensor, q_max: Tensor) -> Tensor:
 
 def _broadcasts(a, b) -> bool:
     try:
-        torch.broadcast_shapes(a, b)
+        broadcast_shapes(a, b)
     except RuntimeError:
         return False
     return True
@@ -98,7 +99,7 @@ def _check_dls_args(J, twist, damping, q, q_limits, nullspace_gain, check_limits
     if not _broadcasts(J.shape[:-2], twist.shape[:-1]):
         raise ValueError(f"dls_joint_velocity: the batch dims of J {tuple(J.shape)} and twist "
                          f"{tuple(twist.shape)} do not broadcast")
-    batch = tuple(torch.broadcast_shapes(J.shape[:-2], twist.shape[:-1]))
+    batch = tuple(broadcast_shapes(J.shape[:-2], twist.shape[:-1]))
     lam = _as_batch_arg(damping, "damping", J, batch)
     gain = _as_batch_arg(nullspace_gain, "nullspace_gain", J, batch)
     if q is None or q_limits is None:

@@ -75,6 +75,7 @@ from controllers.dynamics import (
 from controllers.implicit import ilqr_implicit, reduced_hessian_pd
 from controllers.lifted import transfer_matrices
 from controllers.problem import GradMode, Reason, SolverStatus, cost_status_of
+from torchlie._batch import broadcast_shapes
 
 __all__ = [
     "ILQRMethod",
@@ -494,7 +495,7 @@ def ilqr(
             raise TypeError(f"ilqr: u_init must be a tensor of dtype {dtype}")
         if u_init.dim() < 2 or tuple(u_init.shape[-2:]) != (T, m):
             raise ValueError(f"ilqr: u_init must have shape (*B, {T}, {m}), got {tuple(u_init.shape)}")
-        bs = torch.broadcast_shapes(bs, u_init.shape[:-2])
+        bs = broadcast_shapes(bs, u_init.shape[:-2])
         u_init = u_init.expand(*bs, T, m)
     lo, hi = problem.bounds()
     lo, hi = _bcast(lo, (*bs, T, m)), _bcast(hi, (*bs, T, m))

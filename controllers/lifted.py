@@ -23,6 +23,7 @@ from dataclasses import dataclass
 import torch
 
 from controllers.problem import LQProblem, Reason, SolverStatus
+from torchlie._batch import broadcast_shapes
 
 __all__ = [
     "transfer_matrices",
@@ -46,7 +47,7 @@ def transfer_matrices(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None =
     if T is None:
         T = max(A.shape[-3], B.shape[-3], 1 if c is None else c.shape[-2])
     n, m = A.shape[-1], B.shape[-1]
-    bs = torch.broadcast_shapes(A.shape[:-3], B.shape[:-3], *([] if c is None else [c.shape[:-2]]))
+    bs = broadcast_shapes(A.shape[:-3], B.shape[:-3], *([] if c is None else [c.shape[:-2]]))
     dt, dev = A.dtype, A.device
     At = lambda t: A[..., t if A.shape[-3] > 1 else 0, :, :]
     Bt = lambda t: B[..., t if B.shape[-3] > 1 else 0, :, :]

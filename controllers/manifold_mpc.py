@@ -83,7 +83,7 @@ from controllers.boxqp import BoxQPStatus, at_lower, box_qp, masked_hessian
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
 from controllers.problem import GradMode, LQProblem, Reason, SolverStatus
-from torchlie._batch import check_tensor
+from torchlie._batch import broadcast_shapes, check_tensor
 
 __all__ = [
     "ManifoldSystem",
@@ -217,9 +217,9 @@ def manifold_rollout(system: ManifoldSystem, x0, u: Tensor):
 def _stack_points(M, xs: list):
     if isinstance(xs[0], Tensor):
         k = len(M.event_shape)
-        batch = torch.broadcast_shapes(*(x.shape[:x.dim() - k] for x in xs))
+        batch = broadcast_shapes(*(x.shape[:x.dim() - k] for x in xs))
         return torch.stack([x.expand(*batch, *x.shape[x.dim() - k:]) for x in xs], -k - 1)
-    batch = torch.broadcast_shapes(*(x.batch_shape for x in xs))
+    batch = broadcast_shapes(*(x.batch_shape for x in xs))
     return type(xs[0]).stack([x.expand(*batch) for x in xs], dim=len(batch))
 
 
@@ -238,7 +238,7 @@ def system_jacobians(system: ManifoldSystem, x, u: Tensor, method: str = "auto"
     if method == "analytic" and analytic is None:
         raise ValueError("system_jacobians: method='analytic' needs a system with 'f_jacobians'")
     fv = system.f(x, u)
-    batch = torch.broadcast_shapes(fv.shape[:-1], u.shape[:-1], _batch_shape(M, x))
+    batch = broadcast_shapes(fv.shape[:-1], u.shape[:-1], _batch_shape(M, x))
     if analytic is not None and method != "autograd":
         Jx, Ju = analytic(x, u)
     else:
@@ -680,7 +680,7 @@ class ErrorStateMPC:
         ok = warm.dim() >= 2 and warm.shape[-2:] == (N, m)
         if ok:
             try:
-                ok = torch.broadcast_shapes(warm.shape[:-2], batch) == batch
+                ok = broadcast_shapes(warm.shape[:-2], batch) == batch
             except RuntimeError:
                 ok = False
         if not ok:
@@ -1196,7 +1196,7 @@ def _condense(es: ErrorSystem, dx0: Tensor) -> tuple[Tensor, Tensor]:
     augmented rows ``[S_u | free]``."""
     A, B, c = es.A, es.B, es.c
     N, n, m = B.shape[-3], B.shape[-2], B.shape[-1]
-    batch = torch.broadcast_shapes(A.shape[:-3], B.shape[:-3], c.shape[:-2], dx0.shape[:-1])
+    batch = broadcast_shapes(A.shape[:-3], B.shape[:-3], c.shape[:-2], dx0.shape[:-1])
     eyeN = torch.eye(N, dtype=B.dtype, device=B.device)
     Bfull = (eyeN[:, None, :, None] * B.unsqueeze(-2)).reshape(*B.shape[:-3], N, n, N * m)
     add = torch.cat([Bfull.expand(*batch, N, n, N * m), c.expand(*batch, N, n).unsqueeze(-1)], -1)
@@ -1220,7 +1220,7 @@ def _detach(x):
 def _boxminus_jacobian(M, x_bar, x_ref) -> Tensor:
     """``∂((x̄ ⊞ δ) ⊟ x^d)/∂δ`` at δ = 0, ``(*B, n, n)``, by ``jacrev`` of the batch sum."""
     n = M.dim
-    batch = torch.broadcast_shapes(_batch_shape(M, x_bar), _batch_shape(M, x_ref))
+    batch = broadcast_shapes(_batch_shape(M, x_bar), _batch_shape(M, x_ref))
     xb = _expand_point(M, x_bar, batch)
 
     def expr(d):

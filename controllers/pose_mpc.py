@@ -42,6 +42,7 @@ from controllers._validate import all_finite, broadcast_batch
 from controllers.manifold_mpc import ErrorStateMPC, ErrorStateSolution
 from controllers.problem import GradMode
 from torchlie import magnus, se3
+from torchlie._batch import broadcast_shapes
 from torchlie.manifolds import SE3, Rn
 
 __all__ = ["FRAMES", "BodyTwistSE3", "ME2WorldModel", "ME2LocalModel", "PoseMPC", "twist_box"]
@@ -86,7 +87,7 @@ class ME2WorldModel:
         return _matvec(self.D, u)
 
     def f_jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
-        batch = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        batch = broadcast_shapes(x.shape[:-1], u.shape[:-1])
         extra = len(batch) - (self.D.dim() - 2)
         D = self.D.reshape(*self.D.shape[:-2], *(1,) * max(extra, 0), 6, 6)
         return u.new_zeros(*batch, 6, 6), D.expand(*batch, 6, 6)

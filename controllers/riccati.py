@@ -29,6 +29,7 @@ from controllers.costs import CanonicalCost, QuadraticCost, stand_in_cost
 from controllers.dynamics import LinearDynamics
 from controllers.implicit import lqr_implicit
 from controllers.problem import GradMode, LQProblem, LQSolution, Reason, SolverStatus, cost_status_of
+from torchlie._batch import broadcast_shapes
 
 __all__ = [
     "solve",
@@ -60,7 +61,7 @@ def lqr(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, Q: torch.Tenso
         raise ValueError("lqr: fused=True needs grad='implicit' or 'none' (no graph through the kernel)")
     n, m = A.shape[-1], B.shape[-1]
     tr = [(A, 3), (B, 3), (c, 2), (Q, 3), (R, 3), (N, 3), (q, 2), (r, 2)]
-    bs = torch.broadcast_shapes(x0.shape[:-1], *[v.shape[:v.dim() - k] for v, k in tr if v is not None])
+    bs = broadcast_shapes(x0.shape[:-1], *[v.shape[:v.dim() - k] for v, k in tr if v is not None])
     if grad is GradMode.IMPLICIT:
         x, u, J, K, k, info = lqr_implicit(A, B, c, Q, R, N, q, r, x0, T, bs, fused)
     else:
@@ -106,11 +107,11 @@ def prepare(cost: QuadraticCost, T: int, batch_shape: torch.Size | tuple[int, ..
                          f"({cost.horizon}), got {T!r}")
     bs = torch.Size(batch_shape)
     try:
-        torch.broadcast_shapes(bs, cost.batch_shape)
+        broadcast_shapes(bs, cost.batch_shape)
     except RuntimeError as e:
         raise ValueError(f"prepare: batch_shape {tuple(bs)} does not broadcast with the cost's batch "
                          f"shape {tuple(cost.batch_shape)}") from e
-    bs = torch.broadcast_shapes(bs, cost.batch_shape)
+    bs = broadcast_shapes(bs, cost.batch_shape)
     with torch.no_grad():
         cc = cost.canonical(T)
         C, VT = assemble_cost(cc.Q, cc.R, cc.N, cc.q, cc.r, T, bs)
@@ -254,7 +255,7 @@ def augmented_lqt(problem: LQProblem) -> AugmentedLQT:
     At[..., :n, :n] = d.A
     At[..., n, n] = 1.0
     if d.c is not None:
-        At = At.expand(*torch.broadcast_shapes(At.shape[:-2], d.c.shape[:-1]), n + 1, n + 1).clone()
+        At = At.expand(*broadcast_shapes(At.shape[:-2], d.c.shape[:-1]), n + 1, n + 1).clone()
         At[..., :n, n] = d.c
     Bt = torch.cat([d.B, torch.zeros(*d.B.shape[:-2], 1, m, **kw)], -2)
 
@@ -342,7 +343,7 @@ def ls_recursive_gains(Sx: torch.Tensor, Su: torch.Tensor, Qbig: torch.Tensor, R
     W = torch.cholesky_solve(SuP.mT @ Qbig @ Sx, Lh)
     Fm = W if Psi is None else Psi @ W  # (*B, T m, n)
     Ft = Fm.reshape(*Fm.shape[:-2], T, m, n)
-    bs = torch.broadcast_shapes(Ft.shape[:-3], A.shape[:-3], B.shape[:-3])
+    bs = broadcast_shapes(Ft.shape[:-3], A.shape[:-3], B.shape[:-3])
     ok = ok.expand(bs)
     eye = torch.eye(n, dtype=A.dtype, device=A.device)
     P = eye.expand(*bs, n, n)

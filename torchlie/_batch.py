@@ -10,6 +10,7 @@ from __future__ import annotations
 import torch
 
 __all__ = [
+    "broadcast_shapes",
     "check_tensor",
     "check_same_device",
     "broadcast_leading",
@@ -22,6 +23,31 @@ __all__ = [
     "horner",
     "series_switch",
 ]
+
+
+def broadcast_shapes(*shapes) -> torch.Size:
+    """``torch.broadcast_shapes`` for plain shapes, in ~1.5 µs instead of ~28 µs (torch's goes through its
+    symbolic-shape machinery; the solvers call it a few times per step). Sizes that are not plain ints
+    (symbols while a program is traced) and shapes that do not broadcast go to torch's own function, so
+    the result and the error message are torch's."""
+    n = 0
+    for s in shapes:
+        if not isinstance(s, (tuple, torch.Size)):
+            return torch.broadcast_shapes(*shapes)
+        n = max(n, len(s))
+    out = [1] * n
+    for s in shapes:
+        off = n - len(s)
+        for i, d in enumerate(s):
+            if type(d) is not int or d < 0:
+                return torch.broadcast_shapes(*shapes)
+            o = out[off + i]
+            if d != o:
+                if o == 1:
+                    out[off + i] = d
+                elif d != 1:
+                    return torch.broadcast_shapes(*shapes)
+    return torch.Size(out)
 
 
 def _shape_str(trailing: tuple[int, ...]) -> str:
@@ -68,7 +94,7 @@ def broadcast_leading(a: torch.Tensor, ka: int, b: torch.Tensor, kb: int, fn: st
     if ba == bb:
         return a, b
     try:
-        batch = torch.broadcast_shapes(ba, bb)
+        batch = broadcast_shapes(ba, bb)
     except RuntimeError as e:
         raise ValueError(f"{fn}: batch shapes of '{names[0]}' {tuple(ba)} and '{names[1]}' {tuple(bb)} "
                          "do not broadcast") from e

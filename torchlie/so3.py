@@ -19,6 +19,7 @@ from torchlie._batch import (
     _plain,
     batch_shape,
     broadcast_leading,
+    broadcast_shapes,
     check_same_device,
     check_tensor,
     float_dtype,
@@ -434,7 +435,7 @@ def compose(R1: torch.Tensor, R2: torch.Tensor) -> torch.Tensor:
     if _plain(R1, R2):
         # the rows accumulate in place in the output (out= kernels): no temporaries, no final copy;
         # ~20 % faster than stacking the rows (measured), but out= supports neither autograd nor vmap
-        out = R1.new_empty(torch.broadcast_shapes(R1.shape, R2.shape))
+        out = R1.new_empty(broadcast_shapes(R1.shape, R2.shape))
         for i in range(3):
             o = out[..., i, :]
             torch.mul(R1[..., i, 0:1], R2[..., 0, :], out=o)

@@ -16,6 +16,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from torchlie._batch import broadcast_shapes
+
 __all__ = ["param", "shape_of", "euler_step", "euler_jacobian", "check_xu"]
 
 
@@ -34,7 +36,7 @@ def param(value: Tensor | float, like: Tensor, name: str, owner: str) -> Tensor 
 
 def shape_of(*values) -> torch.Size:
     """Broadcast shape of the tensor values among ``values`` (floats count as scalars)."""
-    return torch.broadcast_shapes(*[v.shape for v in values if isinstance(v, Tensor)])
+    return broadcast_shapes(*[v.shape for v in values if isinstance(v, Tensor)])
 
 
 def check_xu(x: Tensor, u: Tensor, n: int, m: int, owner: str) -> None:
@@ -66,7 +68,7 @@ def euler_jacobian(a_q: Tensor, a_v: Tensor, a_u: Tensor, dt: Tensor | float) ->
     eye = torch.eye(k, dtype=a_q.dtype, device=a_q.device)
     if isinstance(dt, Tensor):
         dt = dt[..., None, None]
-    bs = torch.broadcast_shapes(a_q.shape, a_v.shape)
+    bs = broadcast_shapes(a_q.shape, a_v.shape)
     a_q, a_v = a_q.expand(bs), a_v.expand(bs)
     Av = torch.cat([dt * a_q, eye + dt * a_v], dim=-1)
     Aq = torch.cat([eye.expand(bs), torch.zeros_like(eye).expand(bs)], dim=-1) + dt * Av

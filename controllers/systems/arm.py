@@ -39,6 +39,7 @@ from torch import Tensor
 
 from controllers.dynamics import NonlinearDynamics
 from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
+from torchlie._batch import broadcast_shapes
 
 __all__ = ["PlanarArm", "spd_solve"]
 
@@ -230,7 +231,7 @@ class PlanarArm:
         phidd, d = self._solve(x, u)
         W, P, w, w2, b = d["W"], d["P"], d["w"], d["w2"], d["b"]
         dt = param(self.dt, x, "dt", "PlanarArm")
-        bs = torch.broadcast_shapes(phidd.shape[:-1], b.shape[:-1], shape_of(dt))
+        bs = broadcast_shapes(phidd.shape[:-1], b.shape[:-1], shape_of(dt))
         diag = torch.diag_embed
         R_phi = diag(d["gml"] * d["s"] - (W * w2[..., None, :]).sum(-1)) + W * w2[..., None, :]
         D = P * phidd[..., None, :] - diag((P * phidd[..., None, :]).sum(-1))

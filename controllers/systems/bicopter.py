@@ -30,6 +30,7 @@ from torch import Tensor
 
 from controllers.dynamics import NonlinearDynamics
 from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
+from torchlie._batch import broadcast_shapes
 
 __all__ = ["Bicopter"]
 
@@ -103,7 +104,7 @@ class Bicopter:
         check_xu(x, u, 6, 2, "Bicopter.jacobian")
         mass, inertia, arm, g, dt = self._params(x)
         th = x[..., 2]
-        bs = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], shape_of(mass, inertia, arm, g, dt))
+        bs = broadcast_shapes(x.shape[:-1], u.shape[:-1], shape_of(mass, inertia, arm, g, dt))
         s, c = torch.sin(th), torch.cos(th)
         T = u[..., 0] + u[..., 1]
         if self.hover_relative:

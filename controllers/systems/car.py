@@ -25,6 +25,7 @@ from torch import Tensor
 
 from controllers.dynamics import NonlinearDynamics
 from controllers.systems._mechanical import check_xu, param, shape_of
+from torchlie._batch import broadcast_shapes
 
 __all__ = ["Car"]
 
@@ -70,7 +71,7 @@ class Car:
         check_xu(x, u, 5, 2, "Car.jacobian")
         length, dt = self._params(x)
         th, v, ph = x[..., 2], x[..., 3], x[..., 4]
-        bs = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], shape_of(length, dt))
+        bs = broadcast_shapes(x.shape[:-1], u.shape[:-1], shape_of(length, dt))
         c, s, tn = torch.cos(th), torch.sin(th), torch.tan(ph)
         dtv = dt * v
         zero = torch.zeros(bs, dtype=x.dtype, device=x.device)

@@ -21,6 +21,7 @@ from torch import Tensor
 
 from controllers.dynamics import NonlinearDynamics
 from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
+from torchlie._batch import broadcast_shapes
 
 __all__ = ["CartPole"]
 
@@ -90,7 +91,7 @@ class CartPole:
         check_xu(x, u, 4, 1, "CartPole.jacobian")
         mc, mp, length, g, dt = self._params(x)
         th, om, F = x[..., 1], x[..., 3], u[..., 0]
-        bs = torch.broadcast_shapes(th.shape, F.shape, shape_of(mc, mp, length, g, dt))
+        bs = broadcast_shapes(th.shape, F.shape, shape_of(mc, mp, length, g, dt))
         s, c = torch.sin(th), torch.cos(th)
         D = mc + mp * s * s
         dD = 2 * mp * s * c

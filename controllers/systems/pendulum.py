@@ -19,6 +19,7 @@ from torch import Tensor
 
 from controllers.dynamics import NonlinearDynamics
 from controllers.systems._mechanical import check_xu, euler_jacobian, euler_step, param, shape_of
+from torchlie._batch import broadcast_shapes
 
 __all__ = ["Pendulum"]
 
@@ -78,7 +79,7 @@ class Pendulum:
         """Analytic ``(A (*B, 2, 2), B (*B, 2, 1))`` of :meth:`step`."""
         check_xu(x, u, 2, 1, "Pendulum.jacobian")
         mass, length, b, g, dt = self._params(x)
-        bs = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], shape_of(mass, length, b, g, dt))
+        bs = broadcast_shapes(x.shape[:-1], u.shape[:-1], shape_of(mass, length, b, g, dt))
         ml2 = mass * length * length
         full = lambda v: (v if isinstance(v, Tensor) else torch.tensor(v, dtype=x.dtype, device=x.device)
                           ).expand(bs)[..., None, None]

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from torchlie import so3
+from torchlie._batch import broadcast_shapes
 from torchlie.manifolds import SO3, ProductManifold, ProductState, Rn
 
 __all__ = ["Quadrotor", "QuadrotorSimulator", "quadrotor_manifold"]
@@ -93,14 +94,14 @@ class Quadrotor:
         R = x["R"]
         g = torch.as_tensor(self.gravity, dtype=u.dtype, device=u.device)
         acc = g[..., None] * _e3(u) - u[..., :1] * R[..., :, 2]
-        batch = torch.broadcast_shapes(x["v"].shape[:-1], acc.shape[:-1], u.shape[:-1])
+        batch = broadcast_shapes(x["v"].shape[:-1], acc.shape[:-1], u.shape[:-1])
         return torch.cat([x["v"].expand(*batch, 3), acc.expand(*batch, 3), u[..., 1:].expand(*batch, 3)], -1)
 
     def f_jacobians(self, x: ProductState, u: Tensor) -> tuple[Tensor, Tensor]:
         """The system-specific parts of Eq. 34: ``∂f(x ⊞ δx, u)/∂δx`` ``(*B, 9, 9)`` and
         ``∂f(x, u ⊞ δu)/∂δu`` ``(*B, 9, 4)``."""
         R = x["R"]
-        batch = torch.broadcast_shapes(R.shape[:-2], u.shape[:-1], x["v"].shape[:-1])
+        batch = broadcast_shapes(R.shape[:-2], u.shape[:-1], x["v"].shape[:-1])
         R = R.expand(*batch, 3, 3)
         aT = u[..., 0].expand(batch)
         eye = torch.eye(3, dtype=u.dtype, device=u.device).expand(*batch, 3, 3)
@@ -162,7 +163,7 @@ class QuadrotorSimulator:
         u = self.saturate(u)
         aT, w = u[..., 0], u[..., 1:]
         p, v, R0 = x["p"], x["v"], x["R"]
-        batch = torch.broadcast_shapes(p.shape[:-1], u.shape[:-1])
+        batch = broadcast_shapes(p.shape[:-1], u.shape[:-1])
         p, v, R0 = p.expand(*batch, 3), v.expand(*batch, 3), R0.expand(*batch, 3, 3)
         aT, w = aT.expand(batch), w.expand(*batch, 3)
         h = self.model.dt / self.substeps

@@ -55,7 +55,7 @@ from typing import NamedTuple, Protocol
 import torch
 from torch import Tensor
 
-from torchlie._batch import check_same_device, check_tensor
+from torchlie._batch import broadcast_shapes, check_same_device, check_tensor
 from torchlie.manifolds import SO2, ProductManifold, ProductState, Surface, fit_quadratic_surface
 
 __all__ = [
@@ -404,7 +404,7 @@ class UGV:
         check_tensor(u, (2,), "u", fn)
         check_same_device(fn, **{"x.p": p, "u": u})
         try:
-            batch = torch.broadcast_shapes(x.batch_shape, u.shape[:-1])
+            batch = broadcast_shapes(x.batch_shape, u.shape[:-1])
         except RuntimeError as e:
             raise ValueError(f"{fn}: batch shapes of 'x' {tuple(x.batch_shape)} and 'u' "
                              f"{tuple(u.shape[:-1])} do not broadcast") from e
@@ -533,7 +533,7 @@ class UGVSimulator:
             if bool(bad.any()):
                 i = tuple(int(k) for k in torch.nonzero(bad)[0].tolist())
                 raise ValueError(f"{fn}: argument 'x.p' has non-finite x, y at batch index {i}")
-        batch = torch.broadcast_shapes(p.shape[:-1], R.shape[:-2], u.shape[:-1])
+        batch = broadcast_shapes(p.shape[:-1], R.shape[:-2], u.shape[:-1])
         lo = torch.tensor(self.u_lower, dtype=u.dtype, device=u.device)
         hi = torch.tensor(self.u_upper, dtype=u.dtype, device=u.device)
         u = torch.minimum(torch.maximum(u, lo), hi)

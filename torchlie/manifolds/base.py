@@ -51,7 +51,7 @@ from typing import Protocol, runtime_checkable
 
 import torch
 
-from torchlie._batch import check_same_device, check_tensor
+from torchlie._batch import broadcast_shapes, check_same_device, check_tensor
 
 __all__ = ["Manifold", "RiemannianManifold", "manifold_tolerance"]
 
@@ -412,7 +412,7 @@ class Manifold(abc.ABC):
         per-element Jacobians as its blocks: one ``jacrev`` with n rows, whatever the batch size.
         """
         n = self.dim
-        batch = torch.broadcast_shapes(self._batch_shape(x_d), v.shape[:-1])
+        batch = broadcast_shapes(self._batch_shape(x_d), v.shape[:-1])
         y = self._oplus(x_d, v)
         in_dim = n if which == "x" else self.ext_dim
         zero = torch.zeros(*batch, in_dim, dtype=v.dtype, device=v.device)

@@ -41,6 +41,7 @@ import math
 
 import torch
 
+from torchlie._batch import broadcast_shapes
 from torchlie.manifolds.base import Manifold, _eye, _group
 
 __all__ = ["Rn", "Euclidean", "SO2", "SO3", "SE3"]
@@ -103,12 +104,12 @@ class Rn(Manifold):
         return self._boxminus(y, x)
 
     def _tm(self, x, y):
-        return _eye(self.n, torch.broadcast_shapes(x.shape[:-1], y.shape[:-1]), x)
+        return _eye(self.n, broadcast_shapes(x.shape[:-1], y.shape[:-1]), x)
 
     _G_identity = True
 
     def _G_x(self, x_d, v):
-        return _eye(self.n, torch.broadcast_shapes(x_d.shape[:-1], v.shape[:-1]), v)
+        return _eye(self.n, broadcast_shapes(x_d.shape[:-1], v.shape[:-1]), v)
 
     def _G_f(self, x_d, v):
         return self._G_x(x_d, v)
@@ -164,12 +165,12 @@ class SO2(Manifold):
         return self._boxminus(y, x)
 
     def _tm(self, x, y):
-        return _eye(1, torch.broadcast_shapes(x.shape[:-2], y.shape[:-2]), x)
+        return _eye(1, broadcast_shapes(x.shape[:-2], y.shape[:-2]), x)
 
     _G_identity = True
 
     def _G_x(self, x_d, v):
-        batch = torch.broadcast_shapes(x_d.shape[:-2], v.shape[:-1])
+        batch = broadcast_shapes(x_d.shape[:-2], v.shape[:-1])
         return torch.ones(*batch, 1, 1, dtype=v.dtype, device=v.device)
 
     def _G_f(self, x_d, v):
@@ -226,11 +227,11 @@ class SO3(Manifold):
 
     def _G_x(self, x_d, v):
         G = _group("so3").exp(-v)
-        return G.expand(*torch.broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 3, 3)
+        return G.expand(*broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 3, 3)
 
     def _G_f(self, x_d, v):
         J = _group("so3").right_jacobian(v)
-        return J.expand(*torch.broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 3, 3)
+        return J.expand(*broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 3, 3)
 
     def _random(self, batch, generator, dtype, device):
         return _group("so3").random(*batch, generator=generator, dtype=dtype, device=device)
@@ -293,11 +294,11 @@ class SE3(Manifold):
     def _G_x(self, x_d, v):
         se3 = _group("se3")
         G = se3.adjoint(se3.exp(-v))
-        return G.expand(*torch.broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 6, 6)
+        return G.expand(*broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 6, 6)
 
     def _G_f(self, x_d, v):
         J = _group("se3").right_jacobian(v)
-        return J.expand(*torch.broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 6, 6)
+        return J.expand(*broadcast_shapes(x_d.shape[:-2], v.shape[:-1]), 6, 6)
 
     def _random(self, batch, generator, dtype, device):
         return _group("se3").random(*batch, generator=generator, dtype=dtype, device=device)

@@ -41,7 +41,7 @@ import torch
 # docstring).  Used for: register_pytree_node, GetAttrKey, tree_leaves.
 from torch.utils import _pytree as pytree
 
-from torchlie._batch import check_tensor
+from torchlie._batch import broadcast_shapes, check_tensor
 from torchlie.manifolds.base import Manifold, _expand_to
 
 __all__ = ["ProductManifold", "ProductState"]
@@ -91,7 +91,7 @@ class ProductState:
             data[name], nd[name] = t, k
         shapes = [_leaf_batch(t, nd.get(n)) for n, t in data.items()]
         try:
-            batch = torch.broadcast_shapes(*shapes)
+            batch = broadcast_shapes(*shapes)
         except RuntimeError as e:
             raise ValueError("ProductState: the components' batch shapes do not broadcast: "
                              + ", ".join(f"'{n}' {tuple(s)}" for n, s in zip(data, shapes))) from e
@@ -505,7 +505,7 @@ class ProductManifold(Manifold):
 
     def _boxminus(self, y, x):
         outs = [m._boxminus(y[n], x[n]) for n, m in self.components.items()]
-        batch = torch.broadcast_shapes(*(o.shape[:-1] for o in outs))
+        batch = broadcast_shapes(*(o.shape[:-1] for o in outs))
         return torch.cat([o.expand(*batch, o.shape[-1]) for o in outs], -1)
 
     def _oplus(self, x, delta_e):
@@ -514,7 +514,7 @@ class ProductManifold(Manifold):
                             self._event_ndims())
 
     def _block_diag(self, blocks: list[torch.Tensor], cols: list[int]) -> torch.Tensor:
-        batch = torch.broadcast_shapes(*(b.shape[:-2] for b in blocks))
+        batch = broadcast_shapes(*(b.shape[:-2] for b in blocks))
         total = sum(cols)
         rows, start = [], 0
         for b, c in zip(blocks, cols):
@@ -540,7 +540,7 @@ class ProductManifold(Manifold):
         """Eq. 21-22 by row blocks: component i contributes ``G_x,i`` on its own columns plus
         ``Δt G_f,i (∂f/∂δx)_i``; identity G's (Rⁿ, SO(2), surfaces) skip their products."""
         n = self.dim
-        batch = torch.broadcast_shapes(self._batch_shape(x_d), v.shape[:-1], df_dx.shape[:-2],
+        batch = broadcast_shapes(self._batch_shape(x_d), v.shape[:-1], df_dx.shape[:-2],
                                        df_du.shape[:-2])
         parts = self._split(v, "ext_dim")
         eye = torch.eye(n, dtype=v.dtype, device=v.device)

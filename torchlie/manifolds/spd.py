@@ -32,7 +32,7 @@ import math
 
 import torch
 
-from torchlie._batch import check_same_device, check_tensor
+from torchlie._batch import broadcast_shapes, check_same_device, check_tensor
 from torchlie.manifolds.base import Manifold, _any_true, _check_symmetric, _first_index, _sym
 
 __all__ = [
@@ -245,7 +245,7 @@ def _spd_prep(fn: str, project: bool, points: dict, tangents: dict) -> list[torc
     for name, U in tangents.items():
         out.append(_check_sym_tangent(U, name, fn, project))
     try:
-        torch.broadcast_shapes(*(t.shape[:-2] for t in out))
+        broadcast_shapes(*(t.shape[:-2] for t in out))
     except RuntimeError as e:
         raise ValueError(f"{fn}: batch shapes {[tuple(t.shape[:-2]) for t in out]} do not broadcast") from e
     return out
@@ -417,7 +417,7 @@ class SPD(Manifold):
     def _tm(self, x, y):
         m = self.tangent_size
         if self.transport_kind is SPDTransport.SEED:
-            batch = torch.broadcast_shapes(x.shape[:-2], y.shape[:-2])
+            batch = broadcast_shapes(x.shape[:-2], y.shape[:-2])
             return torch.eye(m, dtype=x.dtype, device=x.device).expand(*batch, m, m)
         Xh, Xih = _symfun(x, "sqrt", "invsqrt")
         R = _symfun(y, "invsqrt")[0] @ Xh @ _symfun(Xih @ y @ Xih, "sqrt")[0]      # orthogonal n×n

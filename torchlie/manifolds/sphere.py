@@ -66,7 +66,7 @@ import math
 
 import torch
 
-from torchlie._batch import check_same_device, check_tensor, small_angle_eps
+from torchlie._batch import broadcast_shapes, check_same_device, check_tensor, small_angle_eps
 from torchlie.manifolds.base import (
     Manifold,
     _any_true,
@@ -391,7 +391,7 @@ def _prep_sphere(fn: str, **pts: torch.Tensor) -> tuple[Sphere, list[torch.Tenso
                              f"'{next(iter(pts))}', got {tuple(t.shape)}")
     check_same_device(fn, **pts)
     try:
-        torch.broadcast_shapes(*(t.shape[:-1] for t in out))
+        broadcast_shapes(*(t.shape[:-1] for t in out))
     except RuntimeError as e:
         raise ValueError(f"{fn}: batch shapes {[tuple(t.shape[:-1]) for t in out]} of "
                          f"{list(pts)} do not broadcast") from e

@@ -27,7 +27,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchlie._batch import check_same_device, check_tensor
+from torchlie._batch import broadcast_shapes, check_same_device, check_tensor
 from torchlie.manifolds.base import (
     Manifold,
     RiemannianManifold,
@@ -267,7 +267,7 @@ def gaussian_log_density(manifold: RiemannianManifold, x: torch.Tensor, mean: to
     if bool((info != 0).any()):
         raise ValueError(f"{fn}: argument 'covariance' is not positive definite on the tangent space at "
                          f"batch index {_first_index(info != 0)}")
-    batch = torch.broadcast_shapes(L.shape[:-1], chol.shape[:-2])
+    batch = broadcast_shapes(L.shape[:-1], chol.shape[:-2])
     chol = chol.expand(*batch, *chol.shape[-2:])
     L = L.expand(*batch, L.shape[-1])
     z = torch.linalg.solve_triangular(chol, L.unsqueeze(-1), upper=False).squeeze(-1)

@@ -16,7 +16,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchlie._batch import check_same_device, check_tensor
+from torchlie._batch import broadcast_shapes, check_same_device, check_tensor
 from torchlie.manifolds.base import Manifold, _eye
 
 __all__ = ["Surface", "SurfaceFit", "quadratic_surface", "fit_quadratic_surface"]
@@ -79,7 +79,7 @@ class Surface(Manifold):
         if z.dim() == len(batch) + 1 and z.shape[-1] == 1:
             z = z.squeeze(-1)
         try:
-            out = torch.broadcast_shapes(z.shape, batch)
+            out = broadcast_shapes(z.shape, batch)
         except RuntimeError:
             out = None
         if out is None or len(out) != max(len(batch), z.dim()):
@@ -92,7 +92,7 @@ class Surface(Manifold):
         if not isinstance(g, torch.Tensor) or g.shape[-1:] != (2,):
             raise ValueError("Surface: grad_F(xy) must return shape (*, 2), "
                              f"got {tuple(getattr(g, 'shape', ()))}")
-        return g.expand(*torch.broadcast_shapes(g.shape[:-1], xy.shape[:-1]), 2)
+        return g.expand(*broadcast_shapes(g.shape[:-1], xy.shape[:-1]), 2)
 
     def gradient(self, x: torch.Tensor) -> torch.Tensor:
         """g = [F'_x, F'_y] ``(*, 2)`` at ``x`` ``(*, 3)`` or ``(*, 2)`` (only x, y are used; Eq. 37b)."""
@@ -109,7 +109,7 @@ class Surface(Manifold):
         if not isinstance(H, torch.Tensor) or H.shape[-2:] != (2, 2):
             raise ValueError("Surface: hess_F(xy) must return shape (*, 2, 2), "
                              f"got {tuple(getattr(H, 'shape', ()))}")
-        return H.expand(*torch.broadcast_shapes(H.shape[:-2], xy.shape[:-1]), 2, 2)
+        return H.expand(*broadcast_shapes(H.shape[:-2], xy.shape[:-1]), 2, 2)
 
     def normal(self, x: torch.Tensor) -> torch.Tensor:
         """Unit upward normal ``(−F'_x, −F'_y, 1)/√(1 + gᵀg)`` ``(*, 3)`` (the z_b axis of Eq. 35)."""
@@ -140,7 +140,7 @@ class Surface(Manifold):
     _G_identity = True
 
     def _G_x(self, x_d, v):
-        return _eye(2, torch.broadcast_shapes(x_d.shape[:-1], v.shape[:-1]), v)
+        return _eye(2, broadcast_shapes(x_d.shape[:-1], v.shape[:-1]), v)
 
     def _G_f(self, x_d, v):
         return self._G_x(x_d, v)
@@ -177,7 +177,7 @@ def quadratic_surface(gamma: torch.Tensor, name: str = "quadratic") -> Surface:
 
     def hess_F(xy):
         H = torch.stack((2 * g1, g2, g2, 2 * g3), -1).reshape(*gamma.shape[:-1], 2, 2)
-        return H.expand(*torch.broadcast_shapes(gamma.shape[:-1], xy.shape[:-1]), 2, 2)
+        return H.expand(*broadcast_shapes(gamma.shape[:-1], xy.shape[:-1]), 2, 2)
 
     return Surface(F, grad_F, hess_F, name=name)
 
@@ -220,7 +220,7 @@ def fit_quadratic_surface(points: torch.Tensor, weights: torch.Tensor | None = N
         check_same_device(fn, points=points, weights=weights)
         if not bool(((weights >= 0) & torch.isfinite(weights)).all()):
             raise ValueError(f"{fn}: argument 'weights' must be finite and nonnegative")
-    batch = torch.broadcast_shapes(points.shape[:-2], weights.shape[:-1])
+    batch = broadcast_shapes(points.shape[:-2], weights.shape[:-1])
     points = points.expand(*batch, N, 3)
     w = weights.expand(*batch, N)
     wsum = w.sum(-1, keepdim=True)
