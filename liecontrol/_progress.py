@@ -77,8 +77,11 @@ class TrainingProgress:
         self._thread = threading.Thread(target=loop, daemon=True)
         self._thread.start()
 
-    def close(self) -> None:
-        if self._thread is not None:
+    def close(self, wait: bool = True) -> None:
+        """Close the bars; with ``wait``, stop the drain thread through the queue first.  Without (the
+        workers were killed: one may have died holding the queue's write lock, and a put would then block
+        forever) the daemon thread is left to end with the process."""
+        if self._thread is not None and wait:
             self._queue.put(None)
             self._thread.join(timeout=5)
         for b in self.bars.values():

@@ -162,12 +162,18 @@ class _Workers:
     def __exit__(self, exc_type, *_):
         if exc_type is None:
             self.pool.close()
-        else:
-            self.pool.terminate()
+            self.pool.join()
+            self.progress.close()
+            self.queue.close()
+            self.queue.join_thread()
+            return
+        self.pool.terminate()
         self.pool.join()
-        self.progress.close()
+        # a worker killed in the middle of a log line may hold the queue's write lock: nothing more goes
+        # through the queue (a put, or waiting for one to flush, could block forever)
+        self.progress.close(wait=False)
+        self.queue.cancel_join_thread()
         self.queue.close()
-        self.queue.join_thread()
 
 
 @restores_threads
