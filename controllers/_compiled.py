@@ -156,6 +156,9 @@ def _source_hash() -> str:
     return _SOURCE_HASH[0]
 
 
+_CLASS_SOURCE: dict[type, str | None] = {}  # a class -> hash of its module's file (read once per process)
+
+
 def fingerprint(obj) -> str | None:
     """A text key of a system or cost whose fields are plain numbers, strings or 0-dim tensors (their values
     are baked into a program), with a hash of the file that defines its class; ``None`` when a field is
@@ -166,9 +169,14 @@ def fingerprint(obj) -> str | None:
 
     if not dataclasses.is_dataclass(obj):
         return None
-    try:  # the program bakes in the class's code: a change to its module must rebuild
-        src = hashlib.sha256(Path(inspect.getfile(type(obj))).read_bytes()).hexdigest()[:16]
-    except (OSError, TypeError):
+    cls = type(obj)
+    if cls not in _CLASS_SOURCE:
+        try:  # the program bakes in the class's code: a change to its module must rebuild
+            _CLASS_SOURCE[cls] = hashlib.sha256(Path(inspect.getfile(cls)).read_bytes()).hexdigest()[:16]
+        except (OSError, TypeError):
+            _CLASS_SOURCE[cls] = None
+    src = _CLASS_SOURCE[cls]
+    if src is None:
         return None
     parts = [type(obj).__module__ + "." + type(obj).__qualname__, src]
     for f in dataclasses.fields(obj):
@@ -221,8 +229,11 @@ def build(name: str, key: str, fn: Callable, args: tuple[torch.Tensor, ...], bat
     ``batch_dims[i]`` is the batch dim of ``args[i]`` (``None``: no batch dim).  ``key`` must name everything
     that changes the traced program besides dtypes, devices and the shapes of non-batch dims, which are
     added here.  Looking up a built program costs a dict access (no hashing of tensors).  A cached file
-    that does not load (truncated, from another build) is rebuilt once.
+    that does not load (truncated, from another build) is rebuilt once.  Called while another program is
+    traced, ``None`` (without a warning): the caller's eager code is traced into that program.
     """
+    if tracing():  # called from inside a program being built: its body is traced into that program
+        return None
     sig = (name, key, tuple((x.shape if d is None else x.shape[:d] + x.shape[d + 1:], x.dtype, str(x.device),
                              d) for x, d in zip(args, batch_dims)))
     if sig in _PROGRAMS:

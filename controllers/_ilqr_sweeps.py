@@ -21,7 +21,7 @@ from controllers import _compiled
 from controllers.boxqp import box_qp, masked_hessian
 from torchlie._batch import broadcast_shapes
 
-__all__ = ["Backward", "backward_pass", "kkt_parts", "forward_candidates", "can_compile_backward"]
+__all__ = ["Backward", "backward_pass", "kkt_parts", "forward_candidates", "can_compile_backward", "run_flat"]
 
 
 @dataclass
@@ -150,7 +150,7 @@ def backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs, c
     bounded = lo is not None
     limits = () if not bounded else (lo, hi) if (k_warm is None or m == 1) else (lo, hi, k_warm)
     if compiled and can_compile_backward(m, bounded) and bs.numel() > 0:
-        out = _run_flat("ilqr_backward", f"n={n};m={m};bounded={bounded}",
+        out = run_flat("ilqr_backward", f"n={n};m={m};bounded={bounded}",
                         lambda *a: _backward_sweep(n, m, bounded, *a), (F, H, VT, mu, *limits),
                         ((1, 2), (1, 2), (0, 2), (0, 0)) + ((1, 1),) * len(limits), bs, (1, 1, 1, 0, 0, 0, 0))
     else:
@@ -190,7 +190,7 @@ def kkt_parts(A: Tensor, B: Tensor, gx: Tensor, gu: Tensor, u: Tensor, lo: Tenso
     bounded = lo is not None
     limits = (lo, hi) if bounded else ()
     if compiled and bs.numel() > 0:
-        return _run_flat("ilqr_kkt", f"bounded={bounded}", lambda *a: _kkt_sweep(bounded, *a),
+        return run_flat("ilqr_kkt", f"bounded={bounded}", lambda *a: _kkt_sweep(bounded, *a),
                          (A, B, gx, gu, u, *limits), ((1, 2), (1, 2)) + ((1, 1),) * (3 + len(limits)), bs,
                          (0, 0))
     return _kkt_sweep(bounded, A, B, gx, gu, u, *limits)
@@ -242,7 +242,7 @@ def forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi, bs, compiled_key: st
     if compiled_key is not None and bs.numel() > 0:
         def fn(*a):
             return _forward_sweep(dyn.step, S, bounded, feedback, *a)
-        return _run_flat("ilqr_forward", f"{compiled_key};S={S};bounded={bounded};feedback={feedback}", fn,
+        return run_flat("ilqr_forward", f"{compiled_key};S={S};bounded={bounded};feedback={feedback}", fn,
                          (x0, base, *rest),
                          ((0, 1), (2, 1)) + (((1, 2),) if feedback else ()) + ((1, 1),) * len(lims), bs,
                          (1, 1))
@@ -254,14 +254,24 @@ def forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi, bs, compiled_key: st
 # --------------------------------------------------------------------------------------------------
 
 
-def _run_flat(name: str, key: str, fn, args: tuple, layout: tuple, bs: torch.Size, out_lead: tuple):
+def run_flat(name: str, key: str, fn, args: tuple, layout: tuple, bs: torch.Size, out_lead: tuple):
     """Call the program of ``fn`` on ``args`` laid out as ``(lead dims, *B or fewer, trailing dims)``
-    (``layout[i] = (lead, trail)``): the batch is expanded and flattened to one dim for the call, and restored
-    in the outputs (whose batch dim is at ``out_lead[j]``).  Where no program can be built, ``fn(*args)``."""
+    (``layout[i] = (lead, trail)``; ``None``: shared by the batch, passed as it is): the batch is expanded and
+    flattened to one dim for the call, and restored in the outputs (whose batch dim is at ``out_lead[j]``;
+    ``None``: an output without one).  Where no program can be built, ``fn(*args)``."""
     nb, Bf = len(bs), math.prod(bs)
     flat, dims = [], []
-    for x, (lead, trail) in zip(args, layout):
+    for x, lay in zip(args, layout):
+        if lay is None:
+            flat.append(x.contiguous())
+            dims.append(None)
+            continue
+        lead, trail = lay
         have = x.dim() - lead - trail
+        if have == 1 and nb == 1:  # already one batch dim: no reshaping
+            flat.append(x.expand(*x.shape[:lead], Bf, *x.shape[lead + 1:]).contiguous())
+            dims.append(lead)
+            continue
         x = x.reshape((*x.shape[:lead], *([1] * (nb - have)), *x.shape[lead:]))
         x = x.expand((*x.shape[:lead], *bs, *x.shape[lead + nb:]))
         flat.append(x.reshape((*x.shape[:lead], Bf, *x.shape[lead + nb:])).contiguous())
@@ -270,4 +280,5 @@ def _run_flat(name: str, key: str, fn, args: tuple, layout: tuple, bs: torch.Siz
     if prog is None:  # not buildable here (warned once): the same function, eagerly
         return fn(*args)
     outs = prog(*flat)
-    return tuple(o.reshape((*o.shape[:d], *bs, *o.shape[d + 1:])) for o, d in zip(outs, out_lead))
+    return tuple(o if d is None else o.reshape((*o.shape[:d], *bs, *o.shape[d + 1:]))
+                 for o, d in zip(outs, out_lead))

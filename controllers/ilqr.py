@@ -59,10 +59,22 @@ import torch
 from torch import Tensor
 
 from controllers import _compiled
-from controllers._ilqr_sweeps import backward_pass, forward_candidates, kkt_parts
-from controllers._validate import broadcast_batch, check_limit, enum_arg, time_major
+from controllers._ilqr_step import (
+    Iterate,
+    Settings,
+    grow,
+    kkt_relative,
+    line_search,
+    linearize,
+    mark_certified,
+    program_iteration,
+    program_supported,
+    stop_checks,
+)
+from controllers._ilqr_sweeps import backward_pass
+from controllers._validate import broadcast_batch, check_limit, enum_arg
 from controllers.boxqp import box_qp
-from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, cost_derivatives, stand_in_cost
+from controllers.costs import Cost, PeriodicQuadraticCost, QuadraticCost, stand_in_cost
 from controllers.dynamics import (
     LinearDynamics,
     System,
@@ -70,7 +82,6 @@ from controllers.dynamics import (
     has_analytic_jacobian,
     is_time_invariant,
     rollout,
-    trajectory_jacobians,
 )
 from controllers.implicit import ilqr_implicit, reduced_hessian_pd
 from controllers.lifted import transfer_matrices
@@ -383,13 +394,6 @@ def _clip(u: Tensor, lo: Tensor | None, hi: Tensor | None) -> Tensor:
     return torch.minimum(torch.maximum(u, lo), hi)
 
 
-def _pick(v: Tensor, idx: Tensor) -> Tensor:
-    """``v (S, *B, ...)``, ``idx (*B,)`` -> ``v[idx[b], b, ...]``."""
-    extra = v.dim() - 1 - idx.dim()
-    i = idx.view(1, *idx.shape, *([1] * extra)).expand(1, *v.shape[1:])
-    return torch.gather(v, 0, i).squeeze(0)
-
-
 # --------------------------------------------------------------------------------------------------
 # solver
 # --------------------------------------------------------------------------------------------------
@@ -401,12 +405,6 @@ def _defaults(opts: ILQROptions, dtype: torch.dtype) -> tuple[float, float, floa
     tol_cost = opts.tol_cost if opts.tol_cost is not None else (1e-6 if single else 1e-12)
     tol_kkt = opts.tol_kkt if opts.tol_kkt is not None else (1e-3 if single else 1e-6)
     return tol, tol_cost, tol_kkt
-
-
-def _kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor) -> Tensor:
-    """The relative KKT residual ``max|pg| / (max terms + c · ‖u‖∞)`` (:attr:`ILQROptions.tol_kkt`);
-    ``curv`` is ``c``, the largest diagonal entry of the Riccati ``Q_uu,t`` (0: the terms alone, stricter)."""
-    return pg / (terms + curv * umax).clamp_min(torch.finfo(pg.dtype).tiny)
 
 
 def _input_status(cost, x0: Tensor, u_init: Tensor, lo: Tensor | None, hi: Tensor | None, bs: torch.Size
@@ -544,20 +542,56 @@ def ilqr(
                         mu=mu, kkt_residual=kkt)
 
 
+def _eager_iteration(dyn, cost, x0, it: Iterate, lo, hi, lo_tm, hi_tm, k_warm, bs, method, s: Settings, cc,
+                     dyn_key, opts) -> tuple[Iterate, Tensor | None, bool]:
+    """One iteration with its μ retries, eagerly (host reads decide the exits): ``(next iterate, the box QP's
+    warm start, moved)``; ``moved`` False: no element was left to step (statuses final, iterate unchanged)."""
+    lin = linearize(dyn, cost, it.x, it.u, lo_tm, hi_tm, bs, cc)
+    it = mark_certified(it, lin, s)
+    if not bool(it.active.any()):
+        return it, k_warm, False
+    dlo = None if lo is None else lo_tm - lin.u
+    dhi = None if hi is None else hi_tm - lin.u
+    mu, dmu, reason, active = it.mu, it.dmu, it.reason, it.active
+    model = (lin.A, lin.B, lin.gx, lin.gu, lin.Hxx, lin.Hux, lin.Huu)
+    while True:
+        if method is ILQRMethod.RECURSIVE:
+            bw = backward_pass(*model, mu, dlo, dhi, k_warm, bs, cc)
+            K, k, ok, dV1, dV2, curv = bw.K, bw.k, bw.ok, bw.dV1, bw.dV2, bw.curv
+        else:
+            k, ok, dV1, dV2 = _batch_step(*model, mu, dlo, dhi, k_warm, bs)
+            K, curv = None, None
+        fail = active & ~ok
+        if not bool(fail.any()):
+            break
+        mu, dmu = grow(mu, dmu, fail, s)
+        over = fail & (mu > opts.mu_max)
+        reason = torch.where(over, int(Reason.SINGULAR_QUU), reason)
+        active = active & ~over
+        if not bool((active & ~ok).any()):
+            break
+    it = stop_checks(it._replace(mu=mu, dmu=dmu, reason=reason, active=active), lin, k, curv, s)
+    if not bool(it.active.any()):
+        return it, k_warm, False
+    it, accept = line_search(dyn, cost, x0, it, K, k, dV1, dV2, lo, hi, bs, s, dyn_key)
+    return it, torch.where(accept.unsqueeze(-1), torch.zeros((), dtype=k.dtype, device=k.device), k), True
+
+
 def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     dyn, cost = problem.dynamics, problem.cost
-    T, nb = problem.T, len(bs)
+    T = problem.T
     dtype, device = problem.dtype, problem.device
-    kw = dict(dtype=dtype, device=device)
     tol, tol_cost, tol_kkt = _defaults(opts, dtype)
-    f = opts.mu_factor
+    s = Settings(tol, tol_cost, tol_kkt, float(opts.mu_factor), float(opts.mu_min), float(opts.mu_max),
+                 float(opts.armijo), int(opts.line_search_steps))
     lo_tm = None if lo is None else lo.movedim(-2, 0)
     hi_tm = None if hi is None else hi.movedim(-2, 0)
-    alphas = 0.5 ** torch.arange(opts.line_search_steps, **kw)
-    eps = torch.finfo(dtype).eps
     # compiled sweeps (ILQROptions.compile): never under a graph (grad="unrolled" differentiates the loop)
     cc = bool(opts.compile) and not torch.is_grad_enabled()
     dyn_key = _compiled.fingerprint(dyn) if cc and is_time_invariant(dyn) else None
+    # the whole iteration as one program where the problem allows (controllers._ilqr_step)
+    whole = cc and bs.numel() > 0 and program_supported(dyn, cost, dyn_key, problem.m, lo is not None,
+                                                        method is ILQRMethod.RECURSIVE)
 
     x = rollout(dyn, x0, u)
     J = cost.evaluate(x, u).expand(bs)
@@ -573,119 +607,40 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
         u = torch.where(diverged[..., None, None], 0.0, u)
         x = rollout(dyn, x0, u)
         J = torch.where(diverged, cost.evaluate(x, u).expand(bs), J)
-    mu = torch.full(bs, float(opts.mu_init), **kw)
-    dmu = torch.ones(bs, **kw)
-    iters = torch.zeros(bs, dtype=torch.int64, device=device)
-    ntiny = torch.zeros(bs, dtype=torch.int64, device=device)
+    kw = dict(dtype=dtype, device=device)
+    zeros_i = torch.zeros(bs, dtype=torch.int64, device=device)
+    it = Iterate(x, u, J, torch.full(bs, float(opts.mu_init), **kw), torch.ones(bs, **kw), zeros_i, zeros_i,
+                 reason, active)
     hist = [J]
     k_warm = None
-
-    def grow(mu, dmu, where):
-        dmu = torch.where(where, torch.clamp(dmu * f, min=f), dmu)
-        mu = torch.where(where, torch.clamp(mu * dmu, min=opts.mu_min), mu)
-        return mu, dmu
-
+    any_active = bool(active.any())
     for _ in range(opts.max_iter):
-        if not bool(active.any()):
+        if not any_active:
             break
-        A, B = trajectory_jacobians(dyn, x, u)
-        gx, gu, Hxx, Hux, Huu = cost_derivatives(cost, x, u)
-        gx_tm, gu_tm = gx.movedim(-2, 0), gu.movedim(-2, 0)
-        Hxx_tm = time_major(Hxx, 2, T + 1, nb)
-        Hux_tm, Huu_tm = time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb)
-        u_tm = u.movedim(-2, 0)
-        umax = u.abs().flatten(-2).amax(-1)
-        # the certificate at the current point decides how an element that stops here ends; before the
-        # backward pass it is judged on the gradient's terms alone (stricter: no curvature yet)
-        pg, terms = kkt_parts(A, B, gx_tm, gu_tm, u_tm, lo_tm, hi_tm, bs, cc)
-        # the last accepted step barely lowered the cost: done if certified here; otherwise keep taking
-        # steps (a decrease below tol_cost·|J| can still leave a gradient well above tol_kkt on a flat
-        # valley; Newton steps remove it) until the step itself is negligible
-        done = active & (ntiny >= 1) & (_kkt_relative(pg, terms, torch.zeros_like(pg), umax) <= tol_kkt)
-        reason = torch.where(done, int(Reason.CONVERGED), reason)
-        active = active & ~done
-        if not bool(active.any()):
+        if whole:
+            nxt, flags = program_iteration(dyn, dyn_key, cost, x0, it, lo, hi, bs, s)
+            pre, fail, stop, post = flags.tolist()  # the iteration's one host read
+            if not fail:  # otherwise μ must grow and the pass be repeated: this iteration runs eagerly
+                it = nxt
+                if not (pre and stop):
+                    break
+                hist.append(it.J)
+                any_active = bool(post)
+                continue
+        it, k_warm, moved = _eager_iteration(dyn, cost, x0, it, lo, hi, lo_tm, hi_tm, k_warm, bs, method, s,
+                                             cc, dyn_key, opts)
+        if not moved:
             break
-        dlo = None if lo is None else lo_tm - u_tm
-        dhi = None if hi is None else hi_tm - u_tm
-        while True:
-            if method is ILQRMethod.RECURSIVE:
-                bw = backward_pass(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi, k_warm, bs, cc)
-                K, k, ok, dV1, dV2 = bw.K, bw.k, bw.ok, bw.dV1, bw.dV2
-            else:
-                k, ok, dV1, dV2 = _batch_step(A, B, gx_tm, gu_tm, Hxx_tm, Hux_tm, Huu_tm, mu, dlo, dhi,
-                                              k_warm, bs)
-                K, bw = None, None
-            fail = active & ~ok
-            if not bool(fail.any()):
-                break
-            mu, dmu = grow(mu, dmu, fail)
-            over = fail & (mu > opts.mu_max)
-            reason = torch.where(over, int(Reason.SINGULAR_QUU), reason)
-            active = active & ~over
-            if not bool((active & ~ok).any()):
-                break
-        # the certificate with the curvature of this point's Riccati pass (the batch formulation has none:
-        # the terms alone; the final certificate below has it for both)
-        curv = torch.zeros_like(pg) if bw is None else bw.curv
-        cert = _kkt_relative(pg, terms, curv, umax) <= tol_kkt
-        done = active & (ntiny >= 1) & cert
-        reason = torch.where(done, int(Reason.CONVERGED), reason)
-        active = active & ~done
-        # Δ_min of Algorithms 4-5: the step is negligible -> converged if certified, else stalled
-        kmax = k.abs().amax(dim=(0, -1))
-        small = active & (kmax <= tol * (1 + umax))
-        reason = torch.where(small, torch.where(cert, int(Reason.CONVERGED), int(Reason.STALLED)), reason)
-        active = active & ~small
-        if not bool(active.any()):
-            break
-        xc, uc = forward_candidates(dyn, x0, x, u, K, k, alphas, lo, hi, bs, dyn_key)
-        Jc = cost.evaluate(xc, uc).expand(alphas.shape[0], *bs)
-        a = alphas.view(-1, *([1] * len(bs)))
-        expected = -(a * dV1 + a * a * dV2)
-        okc = torch.isfinite(Jc) & (J - Jc > opts.armijo * expected.clamp_min(0))
-        # below round-off the cost cannot confirm a decrease: trust the local model for the full step,
-        # which keeps the last Newton steps (quadratic convergence) and the solution accurate to ~eps
-        noise = 64 * eps * J.abs().clamp_min(1.0)
-        okc[0] = okc[0] | (torch.isfinite(Jc[0]) & (expected[0].abs() <= noise) & (Jc[0] <= J + noise))
-        anyok = okc.any(0)
-        first = torch.argmax(okc.to(torch.int8), dim=0)
-        accept = active & anyok
-        Jn = _pick(Jc, first)
-        improvement = J - Jn
-        x = torch.where(accept[..., None, None], _pick(xc, first), x)
-        u = torch.where(accept[..., None, None], _pick(uc, first), u)
-        Jold = J
-        J = torch.where(accept, Jn, J)
-        iters = iters + active.to(torch.int64)
-        # regularization schedule (Tassa et al.): shrink on success, grow on failure
-        dmu_s = torch.clamp(dmu / f, max=1 / f)
-        mu_s = mu * dmu_s
-        mu_s = torch.where(mu_s > opts.mu_min, mu_s, torch.zeros((), **kw))
-        mu = torch.where(accept, mu_s, mu)
-        dmu = torch.where(accept, dmu_s, dmu)
-        failed = active & ~anyok
-        mu, dmu = grow(mu, dmu, failed)
-        over = failed & (mu > opts.mu_max)
-        reason = torch.where(over, int(Reason.LINE_SEARCH_FAILED), reason)
-        active = active & ~over
-        # a measured (not round-off) small decrease: stop at the next point if it is certified (checked
-        # there); below round-off keep taking Newton steps until the step itself is negligible
-        tiny = accept & (improvement <= tol_cost * Jold.abs()) & (_pick(expected, first) > noise)
-        ntiny = torch.where(tiny, ntiny + 1, torch.zeros_like(ntiny))
-        hist.append(J)
-        k_warm = torch.where(accept.unsqueeze(-1), torch.zeros((), **kw), k)
+        hist.append(it.J)
+        any_active = bool(it.active.any())
+    x, u, mu, reason, iters = it.x, it.u, it.mu, it.reason, it.iters
 
     # gains, clamped set and certificate at the returned point (one more backward pass)
-    A, B = trajectory_jacobians(dyn, x, u)
-    gx, gu, Hxx, Hux, Huu = cost_derivatives(cost, x, u)
-    u_tm = u.movedim(-2, 0)
-    dlo = None if lo is None else lo_tm - u_tm
-    dhi = None if hi is None else hi_tm - u_tm
-    bw = backward_pass(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), time_major(Hxx, 2, T + 1, nb),
-                       time_major(Hux, 2, T, nb), time_major(Huu, 2, T, nb), mu, dlo, dhi, None, bs, cc)
-    pg, terms = kkt_parts(A, B, gx.movedim(-2, 0), gu.movedim(-2, 0), u_tm, lo_tm, hi_tm, bs, cc)
-    kkt = _kkt_relative(pg, terms, bw.curv, u.abs().flatten(-2).amax(-1)).expand(bs)
+    lin = linearize(dyn, cost, x, u, lo_tm, hi_tm, bs, cc)
+    dlo = None if lo is None else lo_tm - lin.u
+    dhi = None if hi is None else hi_tm - lin.u
+    bw = backward_pass(lin.A, lin.B, lin.gx, lin.gu, lin.Hxx, lin.Hux, lin.Huu, mu, dlo, dhi, None, bs, cc)
+    kkt = kkt_relative(lin.pg, lin.terms, bw.curv, lin.umax).expand(bs)
     certified = kkt <= tol_kkt
     iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (
         reason == int(Reason.STALLED))

@@ -176,3 +176,82 @@ def test_implicit_gradients_through_compiled_solves_equal_the_eager_ones():
     for a, b in zip(*grads):
         torch.testing.assert_close(b, a, atol=1e-9, rtol=1e-9)
     assert grads[0][1].abs().item() > 0 and grads[0][2].abs().sum().item() > 0
+
+
+# ---- the whole iteration as one program (controllers._ilqr_step)
+
+
+def _iteration_programs():
+    return [k for k, v in _compiled._PROGRAMS.items() if k[0] == "ilqr_iteration" and v is not None]
+
+
+def test_the_swingup_runs_one_program_per_iteration():
+    """Pendulum (analytic Jacobians, numbers for parameters), a QuadraticCost, one limited control: the
+    iteration program serves it (the tests above compare it with the eager loop)."""
+    ilqr(_swingup(2), grad="none", options=ILQROptions(max_iter=40, compile=True))
+    assert _iteration_programs()
+
+
+def test_a_periodic_cost_with_a_batched_reference_and_two_batch_dims_equals_the_eager_loop():
+    """The cost's tensors are program inputs: a reference per element (batched, flattened with the batch)
+    next to shared weights, on a (2, 3) batch, and the periodic wrap of the angle."""
+    from controllers.costs import PeriodicQuadraticCost
+
+    T = 25
+    g = torch.Generator().manual_seed(7)
+    x0 = torch.stack([torch.rand(2, 3, generator=g, dtype=D) * 6 - 3, torch.zeros(2, 3, dtype=D)], -1)
+    ref = torch.stack([math.pi + 0.3 * torch.randn(2, 3, generator=g, dtype=D), torch.zeros(2, 3, dtype=D)],
+                      -1)
+    Q = torch.diag(torch.tensor([1.0, 0.1], dtype=D)).expand(T + 1, 2, 2).clone()
+    Q[-1] *= 50
+    base = QuadraticCost(Q=Q, R=torch.tensor([[0.02]], dtype=D), x_ref=ref.unsqueeze(-2))
+    cost = PeriodicQuadraticCost(base, torch.tensor([True, False]))
+    p = ILQRProblem(Pendulum(damping=0.05), cost, x0, T, u_lower=-3.0, u_upper=3.0)
+    eager, comp = _both(p)
+    assert comp.u.shape == (2, 3, T, 1)
+    assert (eager.status.reason == int(Reason.CONVERGED)).sum() >= 4
+    _assert_same(eager, comp)
+    assert any("periodic=True" in k[1] for k in _iteration_programs())
+
+
+def test_an_iteration_whose_backward_pass_fails_is_run_again_eagerly(monkeypatch):
+    """Where the program reports a failed backward pass (μ must grow: a data-dependent retry) its result
+    is dropped and that iteration runs eagerly from the same point: here every iteration reports one, and
+    the returned iterate is a garbage one that must never be used."""
+    import controllers.ilqr as il
+
+    def failing(dyn, dyn_key, cost, x0, it, lo, hi, bs, s):
+        garbage = it._replace(x=torch.full_like(it.x, math.nan), u=torch.full_like(it.u, math.nan))
+        return garbage, torch.tensor([1, 1, 1, 1])
+
+    monkeypatch.setattr(il, "program_iteration", failing)
+    p = _swingup(3)
+    eager, comp = _both(p)  # (the eager iterations still run their sweeps as programs: round-off apart)
+    assert (comp.status.reason == int(Reason.CONVERGED)).all()
+    _assert_same(eager, comp)
+
+
+def test_the_iteration_program_stops_where_the_eager_loop_stops():
+    """``max_iter`` reached mid-way (MAX_ITERATIONS, a cost history of max_iter + 1 rows) and a solve
+    that converges in a few iterations: statuses, counts and histories as the eager loop's."""
+    p = _swingup(4)
+    for it in (3, 40):
+        a = ilqr(p, grad="none", options=ILQROptions(max_iter=it))
+        b = ilqr(p, grad="none", options=ILQROptions(max_iter=it, compile=True))
+        _assert_same(a, b)
+        assert b.cost_history.shape == a.cost_history.shape
+        torch.testing.assert_close(b.cost_history, a.cost_history, atol=1e-9, rtol=1e-12)
+    assert (a.status.reason == int(Reason.CONVERGED)).all()
+    short = ilqr(p, grad="none", options=ILQROptions(max_iter=3, compile=True)).status
+    assert (short.reason == int(Reason.MAX_ITERATIONS)).any() and (short.iterations <= 3).all()
+
+
+def test_float32_swingup_equals_the_eager_loop():
+    p = _swingup(3)
+    c = p.cost
+    cost = QuadraticCost(Q=c.Q.float(), R=c.R.float(), x_ref=c.x_ref.float())
+    p32 = ILQRProblem(p.dynamics, cost, p.x0.float(), p.horizon, u_lower=-2.0, u_upper=2.0)
+    eager, comp = _both(p32)
+    assert comp.u.dtype == torch.float32
+    assert (eager.status.reason == int(Reason.CONVERGED)).all()
+    _assert_same(eager, comp, tol=1e-4)
