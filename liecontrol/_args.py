@@ -13,8 +13,9 @@ import math
 import os
 from pathlib import Path
 
-__all__ = ["HelpFormatter", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float",
-           "out_dir", "out_file", "existing_file", "existing_dir", "task_name", "KNOWN_VERSION"]
+__all__ = ["HelpFormatter", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "seed",
+           "thread_count", "int_at_most", "OptionError", "out_dir", "out_file", "existing_file",
+           "existing_dir", "task_name", "KNOWN_VERSION", "SEED_MAX", "THREADS_MAX"]
 
 #: the only registered version of the ``liecontrol/<Name>-vN`` environment ids
 KNOWN_VERSION = 0
@@ -62,6 +63,46 @@ def nonnegative_int(s: str) -> int:
     return v
 
 
+SEED_MAX = 2**32 - 1  # numpy's and gymnasium's seeds are 32-bit
+THREADS_MAX = 1024
+
+
+def seed(s: str) -> int:
+    """A random seed, ``0 … 2³² − 1``."""
+    v = nonnegative_int(s)
+    if v > SEED_MAX:
+        raise argparse.ArgumentTypeError(f"expected a seed between 0 and 2**32 - 1, got {s}")
+    return v
+
+
+def thread_count(s: str) -> int:
+    """A count of torch threads, ``1 … 1024``."""
+    v = positive_int(s)
+    if v > THREADS_MAX:
+        raise argparse.ArgumentTypeError(f"expected at most {THREADS_MAX} threads, got {s}")
+    return v
+
+
+def int_at_most(hi: int):
+    """A count ``1 … hi``."""
+    def check(s: str) -> int:
+        v = positive_int(s)
+        if v > hi:
+            raise argparse.ArgumentTypeError(f"expected a positive integer of at most {hi}, got {s}")
+        return v
+    check.__name__ = f"int_at_most_{hi}"
+    return check
+
+
+class OptionError(ValueError):
+    """A bad option value found after parsing (it needs data the parser does not load): the command prints
+    ``<command>: error: argument <option>: <message>`` and exits with 2, as argparse does."""
+
+    def __init__(self, option: str, message: str):
+        super().__init__(message)
+        self.option = option
+
+
 def positive_float(s: str) -> float:
     """A finite number > 0."""
     v = _number(s, float)
@@ -76,6 +117,15 @@ def nonnegative_float(s: str) -> float:
     if v < 0:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {s}")
     return v
+
+
+def _path_check(s: str, check) -> str:
+    """``check(Path(s))``, with an operating-system refusal (a name too long, …) as an argument error."""
+    try:
+        check(Path(s))
+    except OSError as e:
+        raise argparse.ArgumentTypeError(f"{s[:80]}{'…' if len(s) > 80 else ''}: {e.strerror or e}") from None
+    return s
 
 
 def _writable_parent(p: Path) -> None:
@@ -93,37 +143,40 @@ def out_dir(s: str) -> str:
     """An output folder: an existing folder, or a path that can be created (nothing on its way is a file)."""
     if not s:
         raise argparse.ArgumentTypeError("expected a folder, got an empty string")
-    p = Path(s)
-    if p.exists() and not p.is_dir():
-        raise argparse.ArgumentTypeError(f"{s} is a file, not a folder")
-    _writable_parent(p)
-    return s
+    def check(p: Path) -> None:
+        if p.exists() and not p.is_dir():
+            raise argparse.ArgumentTypeError(f"{s} is a file, not a folder")
+        if p.is_dir() and not os.access(p, os.W_OK | os.X_OK):
+            raise argparse.ArgumentTypeError(f"{s}: cannot write into this folder")
+        _writable_parent(p)
+    return _path_check(s, check)
 
 
 def out_file(s: str) -> str:
     """An output file: not an existing folder, and its folder can be created."""
     if not s:
         raise argparse.ArgumentTypeError("expected a file path, got an empty string")
-    p = Path(s)
-    if p.is_dir():
-        raise argparse.ArgumentTypeError(f"{s} is a folder, expected a file path")
-    _writable_parent(p)
-    return s
+    def check(p: Path) -> None:
+        if p.is_dir():
+            raise argparse.ArgumentTypeError(f"{s} is a folder, expected a file path")
+        _writable_parent(p)
+    return _path_check(s, check)
 
 
 def existing_file(s: str) -> str:
     """An existing file (an interpreter, for example)."""
-    if not Path(s).is_file():
-        raise argparse.ArgumentTypeError(f"{s} is not a file" if Path(s).exists() else f"{s} does not exist")
-    return s
+    def check(p: Path) -> None:
+        if not p.is_file():
+            raise argparse.ArgumentTypeError(f"{s} is not a file" if p.exists() else f"{s} does not exist")
+    return _path_check(s, check)
 
 
 def existing_dir(s: str) -> str:
     """An existing folder."""
-    if not Path(s).is_dir():
-        raise argparse.ArgumentTypeError(f"{s} is not a folder" if Path(s).exists() else
-                                         f"{s} does not exist")
-    return s
+    def check(p: Path) -> None:
+        if not p.is_dir():
+            raise argparse.ArgumentTypeError(f"{s} is not a folder" if p.exists() else f"{s} does not exist")
+    return _path_check(s, check)
 
 
 def task_name(value: str) -> str:
@@ -132,6 +185,8 @@ def task_name(value: str) -> str:
     (``pendulum``, ``cartpole``)."""
     from learning.envs import TASKS
 
+    if not value.strip():
+        raise argparse.ArgumentTypeError("expected a task name, got an empty string")
     name = value
     if "/" in value:
         ns, _, rest = value.partition("/")

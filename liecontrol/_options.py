@@ -21,22 +21,26 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import re
+from pathlib import Path
 
 from liecontrol._args import (
     existing_dir,
     existing_file,
+    int_at_most,
     nonnegative_float,
     nonnegative_int,
     out_dir,
     out_file,
     positive_float,
     positive_int,
+    seed,
     task_name,
+    thread_count,
 )
 
 __all__ = ["COMMANDS", "GROUPS", "LIE_OPS", "QUADROTOR_SCENARIOS", "UGV_PAPER_HORIZON", "UGV_QUICK_STEPS",
            "UGV_WEIGHTS", "ILQR_PROBLEMS", "ENV_BENCH_TASKS", "ENV_BENCH_IMPLS", "SOLVER_WORKLOADS", "DTYPES",
-           "budget_item"]
+           "LEARN_TASKS", "budget_item"]
 
 ME2_PAPER = ("Torres Alberto et al., \"A linearization method based on Lie algebra for pose estimation in a "
              "time horizon\" (ARK 2022)")
@@ -71,7 +75,7 @@ def _common(p: argparse.ArgumentParser, *, out: str | None = None, json: bool = 
         p.add_argument("--json", type=out_file, default=None, metavar="PATH",
                        help="also write the JSON record here")
     if threads is not None:
-        p.add_argument("--threads", type=positive_int, default=threads, metavar="N",
+        p.add_argument("--threads", type=thread_count, default=threads, metavar="N",
                        help="torch intra-op threads (1: robust timings on a shared machine)")
     if plots:
         p.add_argument("--no-plots", action="store_true", help="skip the PNG figures")
@@ -110,8 +114,8 @@ def demo(p: argparse.ArgumentParser) -> None:
     p.add_argument("--num-envs", type=positive_int, default=256, metavar="N",
                    help="batched pendulum environments (and evaluation episodes) of the MPC-vs-PPO step")
     p.add_argument("--budget-steps", type=positive_int, default=32768, metavar="N",
-                   help="PPO's training budget in environment steps")
-    p.add_argument("--seed", type=nonnegative_int, default=0, metavar="S", help="random seed")
+                   help="PPO's training budget in environment steps (rounded up to whole PPO rollouts)")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="random seed")
     _common(p, out="out/demo", json=False, threads=None, plots=True, quiet=True)
 
 
@@ -153,7 +157,7 @@ def bench_lie(p: argparse.ArgumentParser) -> None:
                    help="timed runs per measurement (the median is reported)")
     p.add_argument("--no-compile", action="store_true", help="skip the torch.compile column")
     _common(p, threads=None)
-    p.add_argument("--threads", type=positive_int, default=None, metavar="N",
+    p.add_argument("--threads", type=thread_count, default=None, metavar="N",
                    help="torch intra-op threads (default: torch's own)")
     p.set_defaults(_check=_check_devices)
 
@@ -167,10 +171,11 @@ def bench_lqr(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dtype", default="float32", choices=DTYPES, help="dtype of every solver")
     p.add_argument("--repeats", type=positive_int, default=7, metavar="N",
                    help="timed runs per solver (the median is reported)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, metavar="S", help="seed of the random problem")
-    p.add_argument("--anchors", default="pypose,mpc,plain", type=_anchor_list,
-                   help="comma-separated subset of: pypose, mpc (mpc.pytorch), plain (a textbook Riccati "
-                        "recursion in plain torch)")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="seed of the random problem")
+    p.add_argument("--anchors", nargs="+", default=("pypose", "mpc", "plain"), type=_anchor_list,
+                   action=_Joined, metavar="ANCHOR",
+                   help="subset of: pypose, mpc (mpc.pytorch), plain (a textbook Riccati recursion in plain "
+                        "torch); space- or comma-separated")
     p.add_argument("--mpc-python", type=existing_file, default=None, metavar="PATH",
                    help="python of the mpc.pytorch environment (default: <repo>/.venv-mpc/bin/python; made "
                         "by "
@@ -180,12 +185,24 @@ def bench_lqr(p: argparse.ArgumentParser) -> None:
     _common(p)
 
 
-def _anchor_list(s: str) -> str:
-    names = [a.strip() for a in s.split(",") if a.strip()]
+class _Joined(argparse.Action):
+    """A list option whose values may also be comma-separated (``a b`` or ``a,b``): the values of every
+    token, in order, without repeats (each token's ``type`` returns a tuple)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        out: list[str] = []
+        for v in values:
+            out += [x for x in v if x not in out]
+        setattr(namespace, self.dest, tuple(out))
+
+
+def _anchor_list(s: str) -> tuple[str, ...]:
+    names = tuple(a.strip() for a in s.split(",") if a.strip())
     bad = [a for a in names if a not in ("pypose", "mpc", "plain")]
-    if bad:
-        raise argparse.ArgumentTypeError(f"unknown anchor(s) {' '.join(bad)}; choose from pypose, mpc, plain")
-    return ",".join(names)
+    if not names or bad:
+        raise argparse.ArgumentTypeError(f"unknown anchor(s) {' '.join(bad) or '(empty)'}; choose from "
+                                         "pypose, mpc, plain")
+    return names
 
 
 def bench_ilqr(p: argparse.ArgumentParser) -> None:
@@ -202,7 +219,7 @@ def bench_ilqr(p: argparse.ArgumentParser) -> None:
                    help="timed runs of each anchor (the median is reported)")
     p.add_argument("--grad-batch", type=positive_int, default=4, metavar="N",
                    help="batch of the gradient check (float64)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, metavar="S", help="seed of the initial states")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="seed of the initial states")
     p.add_argument("--no-anchor", action="store_true", help="skip every anchor")
     p.add_argument("--anchor-python", type=existing_file, default=None, metavar="PATH",
                    help="python of the mpc.pytorch environment (default: <repo>/.venv-mpc/bin/python)")
@@ -238,7 +255,7 @@ def _workload_list(s: str) -> tuple[str, ...]:
     names = tuple(w.strip() for w in s.split(",") if w.strip())
     bad = [w for w in names if w not in SOLVER_WORKLOADS]
     if not names or bad:
-        raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(SOLVER_WORKLOADS)}; "
+        raise argparse.ArgumentTypeError(f"expected workloads among {', '.join(SOLVER_WORKLOADS)}; "
                                          f"unknown: {', '.join(bad) or '(empty)'}")
     return names
 
@@ -255,8 +272,9 @@ def _check_device(args: argparse.Namespace) -> str | None:
 
 
 def bench_solver(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--workloads", type=_workload_list, default=SOLVER_WORKLOADS, metavar="A,B",
-                   help=f"comma-separated subset of: {', '.join(SOLVER_WORKLOADS)} (default: all)")
+    p.add_argument("--workloads", nargs="+", type=_workload_list, action=_Joined, default=SOLVER_WORKLOADS,
+                   metavar="WORKLOAD",
+                   help=f"subset of: {', '.join(SOLVER_WORKLOADS)}; space- or comma-separated (default: all)")
     p.add_argument("--device", choices=("cpu", "cuda"), default="cpu",
                    help="device of our solvers (the anchors run on the CPU)")
     p.add_argument("--dtype", choices=DTYPES, default="float64",
@@ -270,7 +288,7 @@ def bench_solver(p: argparse.ArgumentParser) -> None:
                         "ILQROptions(compile=True); the first run builds them, a few seconds each, cached on "
                         "disk)")
     _common(p, threads=None)
-    p.add_argument("--threads", type=positive_int, default=1, metavar="N",
+    p.add_argument("--threads", type=thread_count, default=1, metavar="N",
                    help="torch intra-op threads, and the anchors' (1: per-core timings)")
     p.set_defaults(_check=_check_device)
 
@@ -304,8 +322,17 @@ def _check_compare(args: argparse.Namespace) -> str | None:
         if algo is not None and algo not in args.algos:
             algos = " ".join(args.algos)
             return f"argument --budget-steps: {algo}={n} names an algorithm not in --algos ({algos})"
-    if args.load is not None and args.tensorboard:
-        return "argument --tensorboard: nothing is trained with --load"
+    if args.load is not None:
+        for opt in ("tensorboard", "budget_steps", "train_envs", "eval_every", "jobs"):
+            if getattr(args, opt) not in (None, False):
+                return f"argument --{opt.replace('_', '-')}: nothing is trained with --load"
+    algos = [a for a, _ in args.budget_steps or []]
+    if len(algos) != len(set(algos)):
+        return "argument --budget-steps: one budget per algorithm (an algorithm, or N for all, given twice)"
+    if len(args.seeds) != len(set(args.seeds)):
+        return f"argument --seeds: a seed given twice ({' '.join(map(str, args.seeds))})"
+    if args.json and args.out and Path(args.json).absolute() == Path(args.out).absolute():
+        return "argument --json: the JSON file cannot be the --out folder"
     return _check_tensorboard(args)
 
 
@@ -318,7 +345,7 @@ def compare(p: argparse.ArgumentParser) -> None:
     p.add_argument("--budget-steps", nargs="+", type=budget_item, default=None, metavar="[ALGO=]N",
                    help="training environment steps per seed: N for every algorithm, or ALGO=N (default: per "
                         "task and algorithm, learning.baselines.DEFAULT_BUDGETS)")
-    p.add_argument("--seeds", nargs="+", type=nonnegative_int, default=[0, 1, 2], metavar="S",
+    p.add_argument("--seeds", nargs="+", type=seed, default=[0, 1, 2], metavar="S",
                    help="training seeds (one agent per algorithm and seed)")
     p.add_argument("--eval-episodes", type=positive_int, default=None, metavar="N",
                    help="held-out evaluation episodes (env seeds 10^6 + j), also those of the learning "
@@ -350,13 +377,29 @@ def compare(p: argparse.ArgumentParser) -> None:
     p.set_defaults(_check=_check_compare)
 
 
+#: the tasks whose MPC cost is a quadratic one on the flat state, which the learning commands learn
+#: (tests/test_cli_options.py checks this list against each task's ``mpc_cost``)
+LEARN_TASKS = ("PendulumSwingUp", "CartPoleSwingUp", "CarParking", "BicopterHover")
+
+
+def learn_task(value: str) -> str:
+    """:func:`task_name`, restricted to :data:`LEARN_TASKS`."""
+    name = task_name(value)
+    if name not in LEARN_TASKS:
+        raise argparse.ArgumentTypeError(
+            f"{name} cannot be learnt by these commands (its MPC is not a quadratic cost on the flat state); "
+            f"choose from {', '.join(LEARN_TASKS)}")
+    return name
+
+
+_LEARN_TASK_HELP = f"task: {', '.join(LEARN_TASKS)} (a unique prefix in any case, or liecontrol/<task>-v0)"
+
+
 def learn_mpc_ppo(p: argparse.ArgumentParser) -> None:
-    p.add_argument("task", metavar="TASK", type=task_name,
-                   help="task: PendulumSwingUp, CartPoleSwingUp, ... (a unique prefix in any case, or "
-                        "liecontrol/<task>-v0)")
+    p.add_argument("task", metavar="TASK", type=learn_task, help=_LEARN_TASK_HELP)
     p.add_argument("--budget-steps", type=positive_int, default=20_000, metavar="N",
                    help="training environment steps per seed, of each policy")
-    p.add_argument("--seeds", nargs="+", type=nonnegative_int, default=[0], metavar="S",
+    p.add_argument("--seeds", nargs="+", type=seed, default=[0], metavar="S",
                    help="training seeds")
     p.add_argument("--mpc-horizon", type=positive_int, default=None, metavar="T",
                    help="horizon of the MPC head (default: the task's expert's)")
@@ -372,9 +415,7 @@ def learn_mpc_ppo(p: argparse.ArgumentParser) -> None:
 
 
 def learn_bc(p: argparse.ArgumentParser) -> None:
-    p.add_argument("task", metavar="TASK", type=task_name,
-                   help="task: PendulumSwingUp, CartPoleSwingUp, ... (a unique prefix in any case, or "
-                        "liecontrol/<task>-v0)")
+    p.add_argument("task", metavar="TASK", type=learn_task, help=_LEARN_TASK_HELP)
     p.add_argument("--demos", nargs="+", type=positive_int, default=[1, 2, 5, 10], metavar="N",
                    help="numbers of expert episodes to learn from (one learning run each)")
     p.add_argument("--heldout-episodes", type=positive_int, default=5, metavar="N",
@@ -431,12 +472,12 @@ def reproduce_quadrotor(p: argparse.ArgumentParser) -> None:
 
 
 def reproduce_ugv(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--horizon", type=positive_int, default=UGV_PAPER_HORIZON, metavar="H",
-                   help=f"MPC horizon in steps (default: {UGV_PAPER_HORIZON}, the paper's)")
+    p.add_argument("--horizon", type=int_at_most(1000), default=UGV_PAPER_HORIZON, metavar="H",
+                   help=f"MPC horizon in steps, at most 1000 (default: {UGV_PAPER_HORIZON}, the paper's)")
     p.add_argument("--steps", type=positive_int, default=None, metavar="N",
                    help="closed-loop steps (default: the whole path)")
     p.add_argument("--quick", action="store_true", help=f"a short run ({UGV_QUICK_STEPS} steps, batch <= 16)")
-    p.add_argument("--seed", type=nonnegative_int, default=0, metavar="S", help="seed of the map points")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="seed of the map points")
     p.add_argument("--dtype", choices=DTYPES, default="float64", help="dtype of the MPC")
     p.add_argument("--batch", type=nonnegative_int, default=256, metavar="N",
                    help="vehicles in the batched-step timing (0 skips it)")
@@ -489,7 +530,7 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
      "crocoddyl, CasADi, a numpy iLQR and SB3's MLP policy"),
     (("reproduce", "me2"), reproduce_me2, "liecontrol.reproduce.me2",
      f"pose prediction over a 300 ms horizon by the second-order Magnus (ME2) linearization (Table 1, "
-     f"Fig. 3-4) of {ME2_PAPER}"),
+     f"Figs. 2-4) of {ME2_PAPER}"),
     (("reproduce", "quadrotor"), reproduce_quadrotor, "liecontrol.reproduce.quadrotor",
      f"quadrotor tracking (circle, flips, 8 m/s loop) by the error-state MPC of {MANIFOLD_PAPER} (Sec. "
      "VII-A), "

@@ -13,20 +13,22 @@ import argparse
 import importlib
 import sys
 
-from liecontrol._args import HelpFormatter
+from liecontrol._args import HelpFormatter, OptionError
 from liecontrol._options import COMMANDS, GROUPS
 
 __all__ = ["main", "build_parser"]
 
 
 def _parser(parent, name: str, help_: str) -> argparse.ArgumentParser:
-    return parent.add_parser(name, help=help_, description=help_, formatter_class=HelpFormatter)
+    # no abbreviations: `--q` must not silently mean `--quick` and start the work
+    return parent.add_parser(name, help=help_, description=help_, formatter_class=HelpFormatter,
+                             allow_abbrev=False)
 
 
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of every command (no command module is imported)."""
     parser = argparse.ArgumentParser(
-        prog="liecontrol", formatter_class=HelpFormatter,
+        prog="liecontrol", formatter_class=HelpFormatter, allow_abbrev=False,
         description="Lie groups, differentiable controllers and robot learning in PyTorch.",
     )
     parser.add_argument("--version", action="version", version=sys.modules["liecontrol"].__version__)
@@ -76,6 +78,9 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"{command}: interrupted", file=sys.stderr)
         return 130
+    except OptionError as e:  # a bad value only the command's data could reveal: argparse's form and code
+        print(f"{command}: error: argument {e.option}: {e}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":  # pragma: no cover

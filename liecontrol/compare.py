@@ -45,6 +45,7 @@ import numpy as np
 import torch
 
 from liecontrol import _options
+from liecontrol._args import OptionError
 from liecontrol._args import task_name as resolve_env
 from liecontrol._progress import TrainingProgress, write
 from liecontrol.report import fmt, print_table, restores_threads
@@ -257,7 +258,10 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
                 if load is not None:
                     pt = _find_saved(Path(load), task.name, algo, s)
                     meta = bl.read_agent_meta(pt)
-                    model = bl.load_agent(pt, algo, task)
+                    try:
+                        model = bl.load_agent(pt, algo, task)
+                    except ValueError as e:  # weights of another task or algorithm
+                        raise OptionError("--load", str(e)) from None
                     curve, train_time, steps, params = (meta["curve"], meta.get("train_time_s"),
                                                         meta.get("num_timesteps"), meta["params"])
                     if meta.get("eval_episodes") not in (None, E):

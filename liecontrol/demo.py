@@ -375,8 +375,8 @@ def run(args: argparse.Namespace) -> int:
           f"differences: median rel. err. {swing['grad_length_median_rel_err']:.1e}, "
           f"{swing['grad_length_agree_1e-6']}/{swing['batch']} agree to 1e-6 (e.g. "
           f"{swing['grad_length_example'][0]:.4f} vs {swing['grad_length_example'][1]:.4f})")
-    print(f"[5] MPC vs RL: the MPC expert and PPO (trained here for {args.budget_steps} steps) on "
-          f"{args.num_envs} batched pendulum swing-ups", flush=True)
+    print(f"[5] MPC vs RL: the MPC expert and PPO (trained here for about {args.budget_steps} steps, whole "
+          f"rollouts) on {args.num_envs} batched pendulum swing-ups", flush=True)
     duel = mpc_vs_rl(args.num_envs, args.budget_steps, args.seed, quiet=args.quiet)
     print(f"[5] MPC vs RL on {duel['envs']} batched pendulum swing-ups (same held-out seeds; PPO trained "
           f"here for {duel['ppo_steps']} steps in {duel['ppo_train_s']:.0f} s):")

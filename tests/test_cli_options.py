@@ -3,6 +3,8 @@ naming the option (exit status 2) before any work starts; ``--help`` never impor
 its subcommand shows its help; Ctrl-C stops ``compare``'s worker processes."""
 
 import argparse
+import contextlib
+import os
 import signal
 import subprocess
 import sys
@@ -12,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from liecontrol import _args, cli
-from liecontrol._options import COMMANDS, budget_item
+from liecontrol._options import COMMANDS, LEARN_TASKS, budget_item, learn_task
 
 ROOT = Path(__file__).resolve().parents[1]
 TASK_ARG = "PendulumSwingUp"
@@ -25,8 +27,12 @@ BAD = {
     _args.nonnegative_float: ["-1", "nan", "x"],
     _args.task_name: ["NoSuchTask", "liecontrol/PendulumSwingUp-v1", "other/PendulumSwingUp-v0", "quadrotor"],
     budget_item: ["0", "dqn=5", "ppo=-1", "ppo=x"],
+    _args.seed: ["-1", "x", "2.5", str(2**32), "99999999999999999999999"],
+    _args.thread_count: ["0", "-2", "x", "99999999999"],
+    learn_task: ["NoSuchTask", "quadrotorc", "ArmReach", "PandaReach"],  # the last three: not learnable
 }
-BAD_BY_NAME = {"_anchor_list": ["foo", "pypose,bar"], "_ilqr_problem": ["ArmReach", "x"],
+BAD_BY_NAME = {"_anchor_list": ["foo", "pypose,bar"], "_ilqr_problem": ["ArmReach", "x"], "int_at_most_1000":
+               ["0", "1001", "x"],
                "task": ["ArmReach"], "_workload_list": ["quadrotor_step,nope", "", " , "]}
 PATH_TYPES = ("out_dir", "out_file", "existing_dir", "existing_file")
 
@@ -53,9 +59,10 @@ def _cases():
 def _bad_paths(kind: str, tmp_path: Path) -> list[str]:
     f = tmp_path / "a_file"
     f.write_text("x")
-    return {"out_dir": [str(f), str(f / "sub")], "out_file": [str(tmp_path), str(f / "x.json")],
-            "existing_dir": [str(tmp_path / "missing"), str(f)],
-            "existing_file": [str(tmp_path / "missing"), str(tmp_path)]}[kind]
+    long = str(tmp_path / ("a" * 300))  # a name longer than the file system allows
+    return {"out_dir": [str(f), str(f / "sub"), long], "out_file": [str(tmp_path), str(f / "x.json"), long],
+            "existing_dir": [str(tmp_path / "missing"), str(f), long],
+            "existing_file": [str(tmp_path / "missing"), str(tmp_path), long]}[kind]
 
 
 def _argv(path, name, value):
@@ -191,16 +198,26 @@ def test_ctrl_c_stops_compare_and_its_workers(tmp_path):
     cmd = [sys.executable, "-m", "liecontrol", "compare", TASK_ARG, "--algos", "ppo", "--seeds", "0", "1",
            "--budget-steps", "1000000", "--eval-episodes", "1", "--no-mpc", "--jobs", "2", "--quiet",
            "--out", str(tmp_path)]
-    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # Ctrl-C as in a terminal: a run started in the background of a non-interactive shell (as CI may start
+    # the suite) inherits SIGINT ignored, and Python then never raises KeyboardInterrupt
+    proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     workers: list[int] = []
-    deadline = time.monotonic() + 120
-    while len(workers) < 3 and time.monotonic() < deadline and proc.poll() is None:
-        time.sleep(0.5)  # two workers and the resource tracker
-        workers = _children(proc.pid)
-    assert len(workers) >= 3, "the worker processes never started"
-    time.sleep(2)
-    proc.send_signal(signal.SIGINT)
-    out, err = proc.communicate(timeout=60)
+    try:
+        deadline = time.monotonic() + 120
+        while len(workers) < 3 and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(0.5)  # two workers and the resource tracker
+            workers = _children(proc.pid)
+        assert len(workers) >= 3, "the worker processes never started"
+        time.sleep(2)
+        proc.send_signal(signal.SIGINT)
+        out, err = proc.communicate(timeout=60)
+    finally:  # a failed test leaves no training processes behind
+        if proc.poll() is None:
+            for pid in [*_children(proc.pid), proc.pid]:
+                with contextlib.suppress(OSError):
+                    os.kill(pid, signal.SIGKILL)
+            proc.wait()
     assert proc.returncode == 130, err
     assert "liecontrol compare: interrupted" in err and "Traceback" not in err
     assert "leaked" not in err  # the resource tracker's warning about semaphores
@@ -215,3 +232,83 @@ def test_old_invocation_of_make_demo_still_parses():
     args = cli.build_parser().parse_args(["demo", "--out", "out"])
     assert args.out == "out" and args.num_envs == 256
 
+
+
+def test_the_learnable_tasks_are_those_with_a_quadratic_mpc_cost():
+    """``LEARN_TASKS`` (checked at parse time, without torch) against each task's own MPC cost."""
+    from controllers.costs import PeriodicQuadraticCost, QuadraticCost
+    from learning.envs import TASKS
+    from learning.envs.single import make_task
+
+    learnable = []
+    for name in TASKS:
+        try:
+            cost = make_task(name).mpc_cost(5)
+        except NotImplementedError:
+            continue
+        base = cost.base if isinstance(cost, PeriodicQuadraticCost) else cost
+        if isinstance(base, QuadraticCost):
+            learnable.append(name)
+    assert sorted(learnable) == sorted(LEARN_TASKS)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "geteuid") or __import__("os").geteuid() == 0,
+                    reason="root writes into any folder: the check cannot be seen failing")
+def test_an_existing_out_folder_that_cannot_be_written_is_refused(tmp_path):
+    ro = tmp_path / "ro"
+    ro.mkdir()
+    ro.chmod(0o555)
+    with pytest.raises(argparse.ArgumentTypeError, match="cannot write into this folder"):
+        _args.out_dir(str(ro))
+
+
+def test_json_at_the_out_folder_is_refused(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(cli, "_load", lambda m: pytest.fail(f"{m} imported"))
+    d = str(tmp_path / "c9")
+    with pytest.raises(SystemExit) as e:
+        cli.main(["compare", TASK_ARG, "--out", d, "--json", d])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "error: argument --json: " in err
+
+
+def test_an_option_error_found_by_the_command_is_argparse_shaped(capsys, monkeypatch):
+    """A value only the command's data can judge (here: more steps than the path has) ends like a parse
+    error: one line naming the option, exit status 2, no traceback."""
+    import types
+
+    def fake_load(module):
+        def run(args):
+            raise _args.OptionError("--steps", "must be at most 1127 (one lap of the path), got 5000")
+        return types.SimpleNamespace(run=run)
+
+    monkeypatch.setattr(cli, "_load", fake_load)
+    assert cli.main(["reproduce", "ugv", "--steps", "5000"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("liecontrol reproduce ugv: error: argument --steps: must be at most 1127 (one lap "
+                           "of the path), got 5000")
+
+
+def test_list_options_take_spaces_or_commas_without_repeats():
+    p = cli.build_parser()
+    a = p.parse_args(["bench", "solver", "--workloads", "quadrotor_step", "pendulum_mpc_step,quadrotor_step"])
+    b = p.parse_args(["bench", "solver", "--workloads", "quadrotor_step,pendulum_mpc_step"])
+    assert a.workloads == b.workloads == ("quadrotor_step", "pendulum_mpc_step")
+    assert p.parse_args(["bench", "lqr", "--anchors", "pypose", "plain"]).anchors == ("pypose", "plain")
+    assert p.parse_args(["bench", "lqr"]).anchors == ("pypose", "mpc", "plain")
+
+
+@pytest.mark.parametrize("argv, where", [
+    (["bench", "solver", "--q"], "unrecognized arguments: --q"),  # no abbreviation of --quick
+    (["compare", TASK_ARG, "--load", ".", "--budget-steps", "100"], "argument --budget-steps: nothing is "
+                                                                    "trained with --load"),
+    (["compare", TASK_ARG, "--load", ".", "--jobs", "2"], "argument --jobs: nothing is trained"),
+    (["compare", TASK_ARG, "--seeds", "0", "0"], "argument --seeds: a seed given twice"),
+    (["compare", TASK_ARG, "--budget-steps", "ppo=1", "ppo=16"], "argument --budget-steps: one budget per"),
+    (["compare", ""], "argument TASK: expected a task name, got an empty string"),
+])
+def test_conflicting_or_ambiguous_values_are_refused(argv, where, capsys, monkeypatch):
+    monkeypatch.setattr(cli, "_load", lambda m: pytest.fail(f"{m} imported"))
+    with pytest.raises(SystemExit) as e:
+        cli.main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and where in err and "Traceback" not in err

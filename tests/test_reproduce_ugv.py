@@ -93,7 +93,7 @@ def test_bad_arguments(kwargs, match):
 
 
 def test_too_many_steps():
-    with pytest.raises(ValueError, match="'steps' must be at most 1127"):
+    with pytest.raises(ValueError, match="must be at most 1127"):
         ugv.run_experiment(steps=10_000, batch=0, offset_run=False)
 
 

@@ -335,14 +335,13 @@ def run_bench(B=256, T=50, n=8, m=4, dtype="float32", repeats=7, seed=0, threads
 
 
 def run(args: argparse.Namespace) -> int:
-    anchors = tuple(a.strip() for a in args.anchors.split(",") if a.strip())
+    anchors = tuple(args.anchors)
     records = run_bench(B=args.batch, T=args.horizon, n=args.state_dim, m=args.control_dim, dtype=args.dtype,
                         repeats=args.repeats,
                         seed=args.seed, threads=args.threads, anchors=anchors, mpc_python=args.mpc_python,
                         fused=not args.no_fused)
     print(f"LQR B={args.batch} T={args.horizon} n={args.state_dim} m={args.control_dim} {args.dtype}, "
-          "torch threads "
-          f"{torch.get_num_threads()}; speedup = anchor_ms / ours_ms (same run)")
+          f"torch threads {args.threads}; speedup = anchor_ms / ours_ms (same run)")
     print_table(records, _COLUMNS)
     if args.json:
         write_json(args.json, records)

@@ -30,6 +30,7 @@ from controllers.manifold_mpc import ErrorStateMPC, track
 from controllers.problem import Reason
 from controllers.systems.ugv import ugv_scenario
 from liecontrol import _options
+from liecontrol._args import OptionError
 from liecontrol.report import fmt, print_table, public, restores_threads, time_ms, write_result
 
 __all__ = ["add_arguments", "run", "run_experiment", "write_outputs", "TARGET_POS_M", "TARGET_STEP_MS"]
@@ -181,14 +182,16 @@ def run_experiment(*, horizon: int = PAPER_HORIZON, steps: int | None = None, se
                    r_v: float = DEFAULT_WEIGHTS["r_v"], r_omega: float = DEFAULT_WEIGHTS["r_omega"],
                    offset_m: float = 0.3, offset_deg: float = 10.0, offset_run: bool = True,
                    substeps: int = 4, threads: int = 1, repeats: int = 5,
-                   out: str | Path | None = None, json_path: str | Path | None = None) -> dict:
+                   out: str | Path | None = None, json_path: str | Path | None = None, plots: bool = True
+                   ) -> dict:
     """Run the experiment (module docstring); returns the JSON-ready result, raw curves under ``"_curves"``.
 
     ``steps``: closed-loop steps (default: the whole path; ``quick`` → ``QUICK_STEPS``); ``batch``: vehicles
     in the batched timing (0: skip it); ``q_*``/``r_*``: the MPC weights Q = diag(q_pos, q_pos, q_yaw) on
     [δp (x-y of S), δθ] and R = diag(r_v, r_omega) on [v, ω]; ``substeps``: RK4 substeps of the plant;
-    ``threads``: torch intra-op threads while running (restored afterwards).  With ``out`` the figures and
-    ``report.md`` are written there, with ``json_path`` the JSON.  Bad arguments raise ``ValueError``.
+    ``threads``: torch intra-op threads while running (restored afterwards).  With ``out`` the figures (unless
+    ``plots`` is False) and ``report.md`` are written there, with ``json_path`` the JSON.  Bad arguments
+    raise ``ValueError``.
     """
     _check_int("horizon", horizon, 1)
     if steps is not None:
@@ -215,8 +218,8 @@ def run_experiment(*, horizon: int = PAPER_HORIZON, steps: int | None = None, se
     if steps is None:
         steps = min(QUICK_STEPS, total) if quick else total
     if steps > total:
-        raise ValueError(f"reproduce ugv: argument 'steps' must be at most {total} (one lap of the path at "
-                         f"{SPEED} m/s and {1 / DT:g} Hz), got {steps}")
+        raise OptionError("--steps", f"must be at most {total} (one lap of the path at {SPEED} m/s and "
+                                     f"{1 / DT:g} Hz), got {steps}")
     ref_states, ref_inputs = ref.states.to(dtype), ref.inputs.to(dtype)
     Q = torch.tensor([q_pos, q_pos, q_yaw], dtype=dtype)
     R = torch.tensor([r_v, r_omega], dtype=dtype)
@@ -267,7 +270,7 @@ def run_experiment(*, horizon: int = PAPER_HORIZON, steps: int | None = None, se
     result["compute_target_met_p90"] = result["step_ms_p90"] <= TARGET_STEP_MS
     result["_curves"] = curves
     if out is not None:
-        result["files"] = [str(p) for p in write_outputs(result, Path(out))]
+        result["files"] = [str(p) for p in write_outputs(result, Path(out), plots)]
     if json_path is not None:
         write_result(json_path, public(result))
     return result
@@ -409,8 +412,12 @@ def _report_md(result: dict) -> str:
     return "\n".join(lines)
 
 
-def write_outputs(result: dict, out: Path) -> list[Path]:
-    """``path.png``, ``errors.png``, ``compute.png`` and ``report.md`` under ``out``."""
+def write_outputs(result: dict, out: Path, plots: bool = True) -> list[Path]:
+    """``path.png``, ``errors.png``, ``compute.png`` (with ``plots``) and ``report.md`` under ``out``."""
+    if not plots:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "report.md").write_text(_report_md(result))
+        return [out / "report.md"]
     import matplotlib
 
     matplotlib.use("Agg")
@@ -518,7 +525,7 @@ def run(args: argparse.Namespace) -> int:
     result = run_experiment(horizon=args.horizon, steps=args.steps, seed=args.seed, dtype=_DTYPES[args.dtype],
                             quick=args.quick, batch=batch, q_pos=args.q_pos, q_yaw=args.q_yaw, r_v=args.r_v,
                             r_omega=args.r_omega, offset_run=not args.no_offset, threads=args.threads,
-                            out=args.out, json_path=args.json)
+                            out=args.out, json_path=args.json, plots=not args.no_plots)
     print_report(result)
     for p in result.get("files", []):
         print(f"wrote {p}")
