@@ -282,7 +282,7 @@ def _plot_averaging(ax, avg: dict) -> None:
 def _plot_duel(fig, a1, a2, duel: dict) -> None:
     import numpy as np
 
-    from liecontrol.report import quantile_band
+    from learning.evaluate import error_band
 
     runs = {name: duel["_" + name] for name in ("mpc", "ppo")}
     bins = shared_bins(*(r.returns for r in runs.values()))
@@ -291,7 +291,7 @@ def _plot_duel(fig, a1, a2, duel: dict) -> None:
         label = f"{name.upper()}: success {100 * m['success_rate']:.0f} %, return {m['return_mean']:.0f}"
         a1.hist(r.returns, bins=bins, alpha=0.6, color=color, label=label)
         t = np.arange(r.error_curve.shape[1]) * 0.05
-        median, lo, hi = quantile_band(r.error_curve)
+        median, lo, hi = error_band(r.error_curve)
         a2.plot(t, median, color=color, label=f"{name.upper()} median")
         a2.fill_between(t, lo, hi, color=color, alpha=0.2, label=f"{name.upper()} 10-90 % of episodes")
     a1.set_xlabel("episode return")

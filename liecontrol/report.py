@@ -18,7 +18,7 @@ from pathlib import Path
 import torch
 
 __all__ = ["time_ms", "fmt", "print_table", "write_json", "sync", "restores_threads", "public",
-           "write_result", "markdown_cell", "quantile_band"]
+           "write_result", "markdown_cell"]
 
 
 def sync(device: torch.device | str | None = None) -> None:
@@ -117,17 +117,3 @@ def write_result(path: str | Path, data: dict) -> Path:
 def markdown_cell(v) -> str:
     """A table cell of a ``report.md``: :func:`fmt`, empty for ``None``."""
     return fmt(v, missing="")
-
-
-def quantile_band(curves, lo: float = 10, hi: float = 90):
-    """``(median, low, high)`` over the rows of ``curves (episodes, T)`` ignoring NaN (episodes that
-    ended): the band of a plot. Quantiles stay inside the data's range (a band of nonnegative errors
-    never dips below 0, unlike mean ± std); a column with no finite value gives NaN, without a warning."""
-    import numpy as np
-
-    c = np.asarray(curves, dtype=float)
-    ok = np.isfinite(c).any(0)
-    q = np.full((3, c.shape[1]), np.nan)
-    if ok.any():
-        q[:, ok] = np.nanpercentile(c[:, ok], [50, lo, hi], axis=0)
-    return q[0], q[1], q[2]

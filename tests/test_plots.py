@@ -11,8 +11,8 @@ import pytest
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from learning.evaluate import error_band
 from liecontrol import compare, demo
-from liecontrol.report import quantile_band
 
 
 def test_shared_bins_span_every_sample_and_skip_nan():
@@ -27,7 +27,7 @@ def test_quantile_band_of_nonnegative_errors_stays_nonnegative():
     rng = np.random.default_rng(0)
     c = np.abs(rng.standard_cauchy((50, 20)))          # heavy-tailed, nonnegative
     c[:, -1] = np.nan                                  # every episode has ended
-    median, lo, hi = quantile_band(c)
+    median, lo, hi = error_band(c)
     ok = slice(0, -1)
     assert (lo[ok] >= 0).all() and (lo[ok] <= median[ok]).all() and (median[ok] <= hi[ok]).all()
     assert ((c[:, ok].mean(0) - c[:, ok].std(0)) < 0).any()   # what mean ± std would have drawn
