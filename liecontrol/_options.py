@@ -322,10 +322,8 @@ def _check_compare(args: argparse.Namespace) -> str | None:
         if algo is not None and algo not in args.algos:
             algos = " ".join(args.algos)
             return f"argument --budget-steps: {algo}={n} names an algorithm not in --algos ({algos})"
-    if args.load is not None:
-        for opt in ("tensorboard", "budget_steps", "train_envs", "eval_every", "jobs"):
-            if getattr(args, opt) not in (None, False):
-                return f"argument --{opt.replace('_', '-')}: nothing is trained with --load"
+    if args.load is not None and args.tensorboard:
+        return "argument --tensorboard: nothing is trained with --load"
     algos = [a for a, _ in args.budget_steps or []]
     if len(algos) != len(set(algos)):
         return "argument --budget-steps: one budget per algorithm (an algorithm, or N for all, given twice)"
@@ -366,7 +364,8 @@ def compare(p: argparse.ArgumentParser) -> None:
                    help="instead of training, rebuild each agent from the policy.pt weights a previous run "
                         "wrote "
                         "(DIR is that run's --out folder, holding agents/ALGO/seedS/policy.pt); only the "
-                        "weights-only .pt files are read, never SB3's .zip")
+                        "weights-only .pt files are read, never SB3's .zip; the training options "
+                        "(--budget-steps, --train-envs, --eval-every, --jobs) then have no effect")
     p.add_argument("--jobs", type=positive_int, default=None, metavar="N",
                    help="agents trained at once in worker processes (default: one per CPU core; 1: in this "
                         "process); the results do not depend on it")

@@ -299,9 +299,6 @@ def test_list_options_take_spaces_or_commas_without_repeats():
 
 @pytest.mark.parametrize("argv, where", [
     (["bench", "solver", "--q"], "unrecognized arguments: --q"),  # no abbreviation of --quick
-    (["compare", TASK_ARG, "--load", ".", "--budget-steps", "100"], "argument --budget-steps: nothing is "
-                                                                    "trained with --load"),
-    (["compare", TASK_ARG, "--load", ".", "--jobs", "2"], "argument --jobs: nothing is trained"),
     (["compare", TASK_ARG, "--seeds", "0", "0"], "argument --seeds: a seed given twice"),
     (["compare", TASK_ARG, "--budget-steps", "ppo=1", "ppo=16"], "argument --budget-steps: one budget per"),
     (["compare", ""], "argument TASK: expected a task name, got an empty string"),
