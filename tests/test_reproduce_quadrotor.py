@@ -20,7 +20,17 @@ def test_quick_circle_is_tracked_and_reported(tmp_path):
     figs = rq.save_figures(res, tmp_path)
     report = rq.write_report(res, tmp_path, figs).read_text()
     assert "target < 0.05 m" in report and "QUICK" in report
+    batch_line = next(line for line in report.splitlines() if "4 quadrotors in one batched step" in line)
+    assert "MISSED" not in batch_line and "met" not in batch_line and "is for 1024" in batch_line
     assert all(p.stat().st_size > 0 for p in figs)
+
+
+def test_the_batched_target_is_judged_at_1024_only():
+    res = {"batch": 1024, "step_ms_batch1024": 60.0, "step_ms_single": 1.0}
+    (line,) = [v for v in rq._verdicts(res) if "batched" in v]
+    assert "1024 quadrotors" in line and "MISSED" in line
+    res["step_ms_batch1024"] = 20.0
+    assert any("1024 quadrotors" in v and "met" in v for v in rq._verdicts(res))
 
 
 def test_cli_writes_json_with_the_issue_keys(tmp_path):

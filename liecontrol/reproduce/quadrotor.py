@@ -211,8 +211,13 @@ def _verdicts(result: dict) -> list[str]:
               TARGETS["loop8_rms_m"], "m")
     check("per-step compute, one quadrotor (median)", result.get("step_ms_single"), TARGETS["step_ms_single"],
           "ms")
-    check(f"per-step compute, {result['batch']} quadrotors in one batched step",
-          result.get("step_ms_batch1024"), TARGETS["step_ms_batch1024"], "ms")
+    if result["batch"] == 1024:
+        check("per-step compute, 1024 quadrotors in one batched step", result.get("step_ms_batch1024"),
+              TARGETS["step_ms_batch1024"], "ms")
+    elif result.get("step_ms_batch1024") is not None:
+        lines.append(f"- per-step compute, {result['batch']} quadrotors in one batched step: "
+                     f"**{result['step_ms_batch1024']:.4g} ms** (the target, "
+                     f"{TARGETS['step_ms_batch1024']} ms, is for 1024: run with --batch 1024 to judge it)")
     return lines
 
 
