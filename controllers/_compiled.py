@@ -54,8 +54,8 @@ def _tracing():
         _STATE.tracing = old
 
 
-def scan(body: Callable, carry: tuple, xs: Sequence[torch.Tensor], T: int, reverse: bool = False
-         ) -> tuple[tuple, tuple]:
+def scan(body: Callable, carry: tuple, xs: Sequence[torch.Tensor], T: int, reverse: bool = False,
+         unroll: int | None = None) -> tuple[tuple, tuple]:
     """``for t in (reversed) range(T): carry, y_t = body(t, carry, [x[t] for x in xs])``; returns the final
     carry and the ``y_t`` stacked along a new leading time dim (in time order).  ``t`` is an int eagerly and
     ``None`` in a traced program (a program serves time-invariant steps only).
@@ -63,7 +63,8 @@ def scan(body: Callable, carry: tuple, xs: Sequence[torch.Tensor], T: int, rever
     ``xs`` are time-major tensors (time dim first, size ``T`` or 1 for a quantity shared by every step);
     ``carry`` and ``y_t`` are tuples of tensors.  ``body`` must not close over tensors that depend on the
     program's inputs (pass them in ``xs`` with a time dim of 1).  Eagerly a Python loop; under
-    :func:`build`'s trace one loop operator whose body is compiled once.
+    :func:`build`'s trace one loop operator whose body is compiled once, ``unroll`` time steps per loop
+    iteration (default :data:`UNROLL`; 1 for a large body, whose copies would multiply the build time).
     """
     if T < 1:
         raise ValueError(f"scan: T must be >= 1, got {T}")
@@ -74,7 +75,7 @@ def scan(body: Callable, carry: tuple, xs: Sequence[torch.Tensor], T: int, rever
         for t in order:
             carry, ys[t] = body(t, carry, [s[t] for s in slices])
         return carry, tuple(torch.stack(y) for y in zip(*ys))
-    return _scan_loop(body, carry, xs, T, reverse)
+    return _scan_loop(body, carry, xs, T, reverse, UNROLL if unroll is None else unroll)
 
 
 #: time steps per iteration of a traced loop: the ``while_loop`` copies its output buffers once per iteration,
@@ -82,9 +83,9 @@ def scan(body: Callable, carry: tuple, xs: Sequence[torch.Tensor], T: int, rever
 UNROLL = int(os.environ.get("LIECONTROL_SCAN_UNROLL", "4"))
 
 
-def _scan_loop(body, carry, xs, T, reverse):
-    """The traced form of :func:`scan`: a ``while_loop`` over blocks of :data:`UNROLL` time steps with
-    preallocated outputs (the first ``(T - 1) % UNROLL + 1`` steps are taken before the loop, which also
+def _scan_loop(body, carry, xs, T, reverse, unroll):
+    """The traced form of :func:`scan`: a ``while_loop`` over blocks of ``unroll`` time steps with
+    preallocated outputs (the first ``(T - 1) % unroll + 1`` steps are taken before the loop, which also
     allocates the outputs).
 
     torch's own ``scan`` operator fills its outputs in place, but with a dynamic batch it fails to lower in
@@ -93,7 +94,7 @@ def _scan_loop(body, carry, xs, T, reverse):
     (``index_copy``), which costs little at the batch sizes of a control loop and grows with ``T × batch``."""
     from torch._higher_order_ops.while_loop import while_loop
 
-    nc, k = len(carry), max(1, UNROLL)
+    nc, k = len(carry), max(1, unroll)
     step = -1 if reverse else 1
     order = list(range(T - 1, -1, -1)) if reverse else list(range(T))
     peel = (T - 1) % k + 1
@@ -245,7 +246,8 @@ def build(name: str, key: str, fn: Callable, args: tuple[torch.Tensor, ...], bat
 
 
 def _build_or_load(name, sig, fn, args, batch_dims) -> Program | None:
-    digest = hashlib.sha256(f"{sig}|{_source_hash()}".encode()).hexdigest()[:24]
+    # (UNROLL is read from the environment: a program traced with another value is another program)
+    digest = hashlib.sha256(f"{sig}|{_source_hash()}|unroll={UNROLL}".encode()).hexdigest()[:24]
     path = cache_dir() / f"{name}-{digest}.pt2"
     try:
         for attempt in range(2):

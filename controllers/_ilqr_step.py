@@ -12,7 +12,7 @@ grow and the pass be repeated, a data-dependent loop), its result is dropped and
 iteration eagerly from the same inputs.  It is used for time-invariant systems with analytic Jacobians and
 plain-number parameters (:func:`controllers._compiled.fingerprint`), a :class:`QuadraticCost` or a
 :class:`PeriodicQuadraticCost` (its tensors are program inputs: a new reference costs no rebuild), the
-recursive method, and one limited control or unlimited ones (:func:`can_compile_backward`).
+recursive method, and up to two limited controls or unlimited ones (:func:`can_compile_iteration`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from torch import Tensor
 
 from controllers._ilqr_sweeps import (
     backward_pass,
-    can_compile_backward,
+    can_compile_iteration,
     forward_candidates,
     kkt_parts,
     run_flat,
@@ -260,7 +260,7 @@ def _cost_from(names: tuple[str, ...], periodic: bool, tensors: tuple[Tensor, ..
 def program_supported(dyn, cost, dyn_key: str | None, m: int, bounded: bool, recursive: bool) -> bool:
     """Whether :func:`program_iteration` can serve this problem (module docstring)."""
     return (dyn_key is not None and recursive and has_analytic_jacobian(dyn)
-            and can_compile_backward(m, bounded) and _cost_leaves(cost) is not None)
+            and can_compile_iteration(m, bounded) and _cost_leaves(cost) is not None)
 
 
 def program_iteration(dyn, dyn_key: str, cost, x0: Tensor, it: Iterate, lo, hi, bs: torch.Size, s: Settings

@@ -4,9 +4,10 @@ Each sweep is one pure function over time-major tensors whose recursion is a
 :func:`controllers._compiled.scan`: run eagerly it is the reference; with ``compiled=True`` the same
 function is built once per structure by :func:`controllers._compiled.build` (a ``while_loop`` program,
 dynamic batch) and called with the batch flattened — one call instead of ``T`` Python steps of 10-30 small
-kernels each.  A sweep the compiler cannot take (several limited controls: the inner box QP has
+kernels each.  A sweep the compiler cannot take (three or more limited controls: the inner box QP has
 data-dependent exits; a time-varying system; a system whose parameters are batched or require grad) runs
-eagerly; the numbers are the same up to round-off.
+eagerly; the numbers are the same up to round-off.  Two limited controls run in a program where the
+outcome can be checked and the pass repeated eagerly (:func:`can_compile_iteration`, ``try_two``).
 """
 
 from __future__ import annotations
@@ -18,10 +19,11 @@ import torch
 from torch import Tensor
 
 from controllers import _compiled
-from controllers.boxqp import box_qp, masked_hessian
+from controllers.boxqp import box_qp, box_qp_two, masked_hessian, small_spd_solve
 from torchlie._batch import broadcast_shapes
 
-__all__ = ["Backward", "backward_pass", "kkt_parts", "forward_candidates", "can_compile_backward", "run_flat"]
+__all__ = ["Backward", "backward_pass", "kkt_parts", "forward_candidates", "can_compile_backward",
+           "can_compile_iteration", "run_flat"]
 
 
 @dataclass
@@ -101,13 +103,23 @@ def _riccati_step(n: int, m: int, bounded: bool):
                 K = -torch.cholesky_solve(Qux, L)
                 free = torch.ones_like(k, dtype=torch.bool)
             else:
-                res = box_qp(Qreg, Qu, xs[3], xs[4], x0=xs[5] if len(xs) > 5 else None, check=False)
-                free = res.free
+                if m == 2 and _compiled.tracing():
+                    # in a program: box_qp's own first step (the enumerated minimizer, certified) without
+                    # host reads or LAPACK calls; an element it leaves uncertified fails the step, and the
+                    # iteration program hands the whole iteration to the eager path (controllers._ilqr_step)
+                    kb, conv, clamped = box_qp_two(Qreg, Qu, xs[3], xs[4])
+                    free = ~clamped
+                    rows = free.to(Q.dtype).unsqueeze(-1) * Qux  # (*B, m, n): one right-hand side a column
+                    Kt, okL = small_spd_solve(masked_hessian(Qreg, free).unsqueeze(-3), rows.mT)
+                    K, okL = -Kt.mT, okL.squeeze(-1)
+                else:
+                    res = box_qp(Qreg, Qu, xs[3], xs[4], x0=xs[5] if len(xs) > 5 else None, check=False)
+                    kb, conv, free = res.x, res.converged, res.free
+                    L, okL = _factor(masked_hessian(Qreg, free))
+                    K = -torch.cholesky_solve(free.to(Q.dtype).unsqueeze(-1) * Qux, L)
                 # an uncertified inner QP (no descent, iteration cap) is a failed step: μ grows
-                L, okL = _factor(masked_hessian(Qreg, free))
-                good = res.converged & okL
-                k = torch.where(good.unsqueeze(-1), res.x, torch.zeros((), **kw))
-                K = -torch.cholesky_solve(free.to(Q.dtype).unsqueeze(-1) * Qux, L)
+                good = conv & okL
+                k = torch.where(good.unsqueeze(-1), kb, torch.zeros((), **kw))
         bs = Q.shape[:-2]
         top = torch.eye(n, n + 1, **kw).expand(*bs, n, n + 1)
         bot = torch.eye(n + 1, **kw)[n:].expand(*bs, 1, n + 1)
@@ -124,8 +136,13 @@ def _backward_sweep(n: int, m: int, bounded: bool, F, H, VT, mu, *limits):
     ``bounded``): ``(K, k, free, ok, dV1, dV2, curv)``."""
     T = H.shape[0]
     # μ is shared by every step: a time dim of 1 (no closure over a tensor: the traced loop takes its inputs)
+    # two limited controls: each step's box QP (9 faces and their certificate) makes a large loop body,
+    # whose copies multiply the build time: one step per loop iteration (CarParking expert, B = 16: its
+    # programs built in 321 s against 400-700 s with 4 steps, at 213-223 ms per closed-loop step against 162)
+    unroll = 1 if (bounded and m == 2) else None
     _, (K, k, free, good, Qu, Quu) = _compiled.scan(_riccati_step(n, m, bounded), (VT,),
-                                                    (F, H, mu.unsqueeze(0), *limits), T, reverse=True)
+                                                    (F, H, mu.unsqueeze(0), *limits), T, reverse=True,
+                                                    unroll=unroll)
     dV1 = (k * Qu).sum((0, -1))
     dV2 = 0.5 * (k * (Quu @ k.unsqueeze(-1)).squeeze(-1)).sum((0, -1))
     curv = Quu.diagonal(dim1=-2, dim2=-1).abs().amax((0, -1))
@@ -137,25 +154,39 @@ def can_compile_backward(m: int, bounded: bool) -> bool:
     return m == 1 or not bounded
 
 
-def backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs, compiled: bool = False
-                  ) -> Backward:
+def can_compile_iteration(m: int, bounded: bool) -> bool:
+    """Whether the backward pass can be part of the iteration program: also two limited controls, whose box
+    QP it solves as :func:`~controllers.boxqp.box_qp` does in one step where that step certifies (an
+    uncertified element fails the pass, and the iteration program's caller reruns it eagerly)."""
+    return m <= 2 or not bounded
+
+
+def backward_pass(A, B, gx, gu, Hxx, Hux, Huu, mu: Tensor, lo, hi, k_warm, bs, compiled: bool = False,
+                  try_two: bool = False) -> Backward:
     """Riccati recursion on the local model (time-major inputs, ``lo/hi`` bounds on ``Δu`` or None).
 
     Homogeneous form (the affine terms ride in an extra coordinate, as in seed Eq. 76-78): with
     ``z̃ = [δx; δu; 1]``, the stage matrix ``H̃_t = [[H_xx, H_xu, g_x], [H_ux, H_uu, g_u], [g_xᵀ, g_uᵀ, 0]]``,
     ``F̃_t = [[A_t, B_t, 0], [0, 0, 1]]`` and the value ``½ x̃ᵀ Ṽ x̃`` (:func:`_riccati_step`).
+
+    ``try_two`` (with ``compiled``): two limited controls run as a program too, whose box QPs are
+    :func:`~controllers.boxqp.box_qp`'s first step; where that step leaves an element uncertified (``ok``
+    false somewhere: one host read) the pass is run again eagerly.  For a pass that is expected to succeed
+    (the gains at the returned point), not for μ's retries.
     """
     n, m = A.shape[-1], B.shape[-1]
     F, H, VT = _stage_matrices(A, B, gx, gu, Hxx, Hux, Huu, bs)
     bounded = lo is not None
     limits = () if not bounded else (lo, hi) if (k_warm is None or m == 1) else (lo, hi, k_warm)
-    if compiled and can_compile_backward(m, bounded) and bs.numel() > 0:
+    plain = can_compile_backward(m, bounded)
+    if compiled and bs.numel() > 0 and (plain or (try_two and m == 2)):
+        lims = limits[:2]  # a warm start only matters to the eager box QP's iterations
         out = run_flat("ilqr_backward", f"n={n};m={m};bounded={bounded}",
-                        lambda *a: _backward_sweep(n, m, bounded, *a), (F, H, VT, mu, *limits),
-                        ((1, 2), (1, 2), (0, 2), (0, 0)) + ((1, 1),) * len(limits), bs, (1, 1, 1, 0, 0, 0, 0))
-    else:
-        out = _backward_sweep(n, m, bounded, F, H, VT, mu, *limits)
-    return Backward(*out)
+                       lambda *a: _backward_sweep(n, m, bounded, *a), (F, H, VT, mu, *lims),
+                       ((1, 2), (1, 2), (0, 2), (0, 0)) + ((1, 1),) * len(lims), bs, (1, 1, 1, 0, 0, 0, 0))
+        if plain or bool(out[3].all()):
+            return Backward(*out)
+    return Backward(*_backward_sweep(n, m, bounded, F, H, VT, mu, *limits))
 
 
 # --------------------------------------------------------------------------------------------------

@@ -106,6 +106,7 @@ from torch import Tensor
 
 from torchlie._batch import broadcast_shapes
 
+# (also used by the solvers, in compiled programs: box_qp_two, box_qp_fixed, small_spd_solve)
 __all__ = ["BoxQPStatus", "BoxQPResult", "box_qp", "masked_hessian", "at_lower"]
 
 
@@ -515,7 +516,7 @@ def _certify(H, g, lo, hi, x, dsq, hsc, tol: float, gap_tol: float, need: Tensor
     return _Cert(grad, clamped, res, kkt_tol, gap, gtol, kok & (gap <= gtol) & torch.isfinite(gtol), convex)
 
 
-def _objective_gap(H, g, lo, hi, x, dsq) -> tuple[Tensor, Tensor, Tensor]:
+def _objective_gap(H, g, lo, hi, x, dsq, small: bool = False) -> tuple[Tensor, Tensor, Tensor]:
     """The bound ``gap ≥ f(x) − min f`` of the module docstring, the scale ``½|xᵀHx| + |gᵀx|`` of the
     objective's terms, and whether ``H̃ + mεI`` is positive definite (else the gap is ``inf``).
 
@@ -523,7 +524,9 @@ def _objective_gap(H, g, lo, hi, x, dsq) -> tuple[Tensor, Tensor, Tensor]:
     ``γ̃ = D^-½∇f(x)``, ``H̃ₛ = H̃ + mεI``): ``d = H̃ₛ,FF⁻¹ γ̃_F`` (zero elsewhere), the multipliers
     ``ν = γ̃ − H̃ₛd`` on the bound variables projected onto their sign (``≥ 0`` on a lower bound, ``≤ 0`` on
     an upper one, free when both coincide), ``e`` what the projection removed, and
-    ``gap = ½ γ̃_Fᵀd + ½ eᵀH̃ₛ⁻¹e``.
+    ``gap = ½ γ̃_Fᵀd + ½ eᵀH̃ₛ⁻¹e``.  ``small``: the factorizations written out elementwise
+    (:func:`_small_cholesky`; for a few variables in a compiled program, where each LAPACK call is a
+    library call per element); equal up to round-off.
     """
     m = H.shape[-1]
     hx = _matvec(H, x)
@@ -533,17 +536,31 @@ def _objective_gap(H, g, lo, hi, x, dsq) -> tuple[Tensor, Tensor, Tensor]:
     Hs = H / (dsq.unsqueeze(-1) * dsq.unsqueeze(-2)) \
         + m * torch.finfo(H.dtype).eps * torch.eye(m, dtype=H.dtype, device=H.device)
     gt = grad / dsq
-    LF, okF = _safe_cholesky(masked_hessian(Hs, ~bound))
-    w = torch.linalg.solve_triangular(LF, torch.where(bound, 0.0, gt).unsqueeze(-1), upper=False)
-    d = torch.linalg.solve_triangular(LF.mT, w, upper=True).squeeze(-1)
+    factor, lower, upper = _SMALL if small else _LAPACK
+    LF, okF = factor(masked_hessian(Hs, ~bound))
+    w = lower(LF, torch.where(bound, 0.0, gt))
+    d = upper(LF, w)
     nu = gt - _matvec(Hs, d)
     lam = torch.where(on_lo & ~on_hi, nu.clamp(min=0), torch.where(on_hi & ~on_lo, nu.clamp(max=0), nu))
-    L, convex = _safe_cholesky(Hs)
-    v = torch.linalg.solve_triangular(L, torch.where(bound, nu - lam, 0.0).unsqueeze(-1), upper=False)
-    gap = 0.5 * (w.square().sum((-2, -1)) + v.square().sum((-2, -1)))
+    L, convex = factor(Hs)
+    v = lower(L, torch.where(bound, nu - lam, 0.0))
+    gap = 0.5 * (w.square().sum(-1) + v.square().sum(-1))
     gap = torch.where(convex & okF, gap, torch.inf)
     scale = 0.5 * (x * hx).sum(-1).abs() + (g * x).sum(-1).abs()
     return gap, scale, convex
+
+
+# (factor, L⁻¹b, L⁻ᵀy) of (nb, m, m) matrices and (nb, m) vectors: by LAPACK, or written out entry by entry
+_LAPACK = (
+    lambda A: _safe_cholesky(A),
+    lambda L, b: torch.linalg.solve_triangular(L, b.unsqueeze(-1), upper=False).squeeze(-1),
+    lambda L, y: torch.linalg.solve_triangular(L.mT, y.unsqueeze(-1), upper=True).squeeze(-1),
+)
+_SMALL = (
+    lambda A: _small_cholesky(A),
+    lambda L, b: torch.stack(_small_lower_solve(L, b), -1),
+    lambda L, y: torch.stack(_small_upper_solve(L, list(y.unbind(-1))), -1),
+)
 
 
 def _safe_cholesky(A: Tensor) -> tuple[Tensor, Tensor]:
@@ -785,7 +802,7 @@ def _box_qp_enum_x(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, start: Tensor |
     Hf = H.unsqueeze(1) * ff + eye * (~free).to(dtype).unsqueeze(-1)  # free block, identity elsewhere
     H1 = H.unsqueeze(1)
     rhs = torch.where(free, -(g.unsqueeze(1) + torch.matmul(H1, fixed.unsqueeze(-1)).squeeze(-1)), 0.0)
-    xf, pd = _small_spd_solve(Hf, rhs)
+    xf, pd = small_spd_solve(Hf, rhs)
     x = torch.where(free, xf, fixed)
     rtol = 8 * torch.finfo(dtype).eps
     span = torch.where(torch.isfinite(hi - lo), hi - lo, 1.0).unsqueeze(1) + x.abs()
@@ -799,10 +816,19 @@ def _box_qp_enum_x(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, start: Tensor |
     return torch.where(ok.any(-1, keepdim=True), best, fallback)
 
 
-def _small_spd_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+def small_spd_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
     """``A⁻¹ b`` for many tiny (m ≤ 3) matrices ``A (..., m, m)`` by a Cholesky factorization written out
     entry by entry (a few elementwise kernels instead of one LAPACK call per matrix), and whether each
-    ``A`` is positive definite (pivots > 0; where not, the solution is garbage and must be ignored)."""
+    ``A`` is positive definite (pivots > 0; where not, the solution is garbage and must be ignored).
+    ``A`` and ``b (..., m)`` broadcast (``A (..., 1, m, m)`` with ``b (..., k, m)``: ``k`` right-hand
+    sides)."""
+    L, pd = _small_cholesky(A)
+    return torch.stack(_small_upper_solve(L, _small_lower_solve(L, b)), -1), pd
+
+
+def _small_cholesky(A: Tensor) -> tuple[dict, Tensor]:
+    """The entries ``L[i, j]`` (``i ≥ j``) of the Cholesky factor of tiny ``A (..., m, m)``, elementwise, and
+    whether ``A`` is positive definite (where not, a non-positive pivot is replaced by 1: garbage)."""
     m = A.shape[-1]
     L: dict = {}
     pd = torch.ones(A.shape[:-2], dtype=torch.bool, device=A.device)
@@ -816,19 +842,30 @@ def _small_spd_solve(A: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
                 L[i, i] = torch.sqrt(torch.where(v > 0, v, 1.0))
             else:
                 L[i, j] = v / L[j, j]
-    y = []
-    for i in range(m):  # L y = b
+    return L, pd
+
+
+def _small_lower_solve(L: dict, b: Tensor) -> list[Tensor]:
+    """``y = L⁻¹ b`` (entries of :func:`_small_cholesky`, ``b (..., m)``) as a list of the ``m`` entries."""
+    y: list = []
+    for i in range(b.shape[-1]):
         v = b[..., i]
         for k in range(i):
             v = v - L[i, k] * y[k]
         y.append(v / L[i, i])
+    return y
+
+
+def _small_upper_solve(L: dict, y: list[Tensor]) -> list[Tensor]:
+    """``x = L⁻ᵀ y`` (``y`` a list of entries, as :func:`_small_lower_solve` returns) as a list of entries."""
+    m = len(y)
     x: list = [None] * m
-    for i in reversed(range(m)):  # Lᵀ x = y
+    for i in reversed(range(m)):
         v = y[i]
         for k in range(i + 1, m):
             v = v - L[k, i] * x[k]
         x[i] = v / L[i, i]
-    return torch.stack(x, -1), pd
+    return x
 
 
 def _box_qp_scalar_x(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
@@ -836,6 +873,42 @@ def _box_qp_scalar_x(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> Tensor:
     h = H[..., 0]  # (nb, 1)
     x = _clip(-g / torch.where(h > 0, h, 1.0), lo, hi)
     return torch.where(h > 0, x, _clip(torch.zeros_like(x), lo, hi))
+
+
+def box_qp_two(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`box_qp` for two variables as a fixed-shape, sync-free function for compiled programs (private
+    to the solvers): ``(x, certified, clamped)`` for ``H (nb, 2, 2)``, ``g``, ``lo``, ``hi`` ``(nb, 2)``.
+
+    The same steps as :func:`box_qp`'s usual case, with every test computed for every element: the exact
+    minimizer by enumerating the faces (solved in float64, rounded to the input dtype), certified in float64
+    (where the input is narrower: at the float64 point and at the rounded one).  Where ``box_qp`` certifies
+    its enumerated point it returns it with the same clamped set, so a certified element equals its result;
+    an uncertified one is the caller's to hand to :func:`box_qp` (which iterates from there).  Non-finite
+    data give an uncertified element."""
+    dtype = H.dtype
+    Hw, gw, lw, hw = (v.double() for v in (H, g, lo, hi))
+    eps = torch.finfo(torch.float64).eps
+    gap_tol = _GAP_TOL.get(dtype, _GAP_TOL[torch.float32])
+    dsq, hsc = _jacobi(Hw)
+    x = _box_qp_enum_x(Hw, gw, lw, hw)
+    cert, clamped, _ = _certified_everywhere(Hw, gw, lw, hw, x, dsq, hsc, eps ** 0.5, gap_tol, True)
+    if dtype != torch.float64:
+        x = x.to(dtype)
+        tol_in = torch.finfo(dtype).eps ** 0.5
+        c2, clamped, _ = _certified_everywhere(Hw, gw, lw, hw, x.double(), dsq, hsc, tol_in, gap_tol, True)
+        cert = cert & c2
+    return x.to(dtype), cert, clamped
+
+
+def _certified_everywhere(H, g, lo, hi, x, dsq, hsc, tol: float, gap_tol: float, small: bool = False
+                          ) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`_certify`'s verdict, clamped set and KKT residual, the gap computed for every element (no host
+    read)."""
+    _, clamped, res, kkt_tol = _kkt(H, g, lo, hi, x, dsq, hsc, tol)
+    gap, scale, _ = _objective_gap(H, g, lo, hi, x, dsq, small)
+    gtol = gap_tol * scale
+    cert = (res <= kkt_tol) & torch.isfinite(kkt_tol) & (gap <= gtol) & torch.isfinite(gtol)
+    return cert, clamped, res
 
 
 def box_qp_fixed(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, x0: Tensor, iters: int, *,
@@ -881,8 +954,5 @@ def box_qp_fixed(H: Tensor, g: Tensor, lo: Tensor, hi: Tensor, x0: Tensor, iters
 
     xs = [v.unsqueeze(0) for v in (H, g, lo, hi, eye)]
     (_, x, _), _ = scan(body, (x, x.clone(), fx), xs, iters)
-    grad, clamped, res, kkt_tol = _kkt(H, g, lo, hi, x, dsq, hsc, tol)
-    gap, scale, _ = _objective_gap(H, g, lo, hi, x, dsq)
-    gtol = gap_tol * scale
-    cert = (res <= kkt_tol) & torch.isfinite(kkt_tol) & (gap <= gtol) & torch.isfinite(gtol)
+    cert, clamped, res = _certified_everywhere(H, g, lo, hi, x, dsq, hsc, tol, gap_tol)
     return x, cert, clamped, res

@@ -639,7 +639,8 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     lin = linearize(dyn, cost, x, u, lo_tm, hi_tm, bs, cc)
     dlo = None if lo is None else lo_tm - lin.u
     dhi = None if hi is None else hi_tm - lin.u
-    bw = backward_pass(lin.A, lin.B, lin.gx, lin.gu, lin.Hxx, lin.Hux, lin.Huu, mu, dlo, dhi, None, bs, cc)
+    bw = backward_pass(lin.A, lin.B, lin.gx, lin.gu, lin.Hxx, lin.Hux, lin.Huu, mu, dlo, dhi, None, bs, cc,
+                       try_two=True)
     kkt = kkt_relative(lin.pg, lin.terms, bw.curv, lin.umax).expand(bs)
     certified = kkt <= tol_kkt
     iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (

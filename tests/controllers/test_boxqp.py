@@ -560,3 +560,57 @@ def test_at_equal_bounds_the_derivative_goes_to_the_bound_that_binds(m):
     h = 1e-6
     up = box_qp(torch.eye(m, dtype=D), torch.full((m,), -5.0, dtype=D), 1.0, 1.0 + h).x.sum()
     assert abs(float(up - res.x.sum()) / h - m) < 1e-6  # raising hi moves x one for one
+
+
+# ---- the fixed-shape two-variable form used inside compiled iLQR iterations (controllers._ilqr_sweeps)
+
+
+def _two_variable_problems(nb: int, dtype, seed: int = 0):
+    """Strictly convex, indefinite and ill-conditioned 2×2 box QPs with finite, one-sided, infinite and
+    coinciding bounds and minimizers inside, on a face and at a corner."""
+    g = torch.Generator().manual_seed(seed)
+    A = torch.randn(nb, 2, 2, generator=g, dtype=torch.float64)
+    shift = torch.logspace(-8, 0, nb, dtype=torch.float64)[:, None, None]
+    H = A @ A.mT + shift * torch.eye(2, dtype=torch.float64)
+    H[: nb // 8] = torch.tensor([[1.0, 2.0], [2.0, 1.0]], dtype=torch.float64)  # indefinite
+    q = 3 * torch.randn(nb, 2, generator=g, dtype=torch.float64)
+    lo = -torch.rand(nb, 2, generator=g, dtype=torch.float64)
+    hi = torch.rand(nb, 2, generator=g, dtype=torch.float64)
+    kind = torch.arange(nb) % 5
+    lo = torch.where((kind == 1).unsqueeze(-1), -torch.inf, lo)
+    hi = torch.where((kind == 2).unsqueeze(-1), torch.inf, hi)
+    lo[kind == 3, 0] = -torch.inf
+    hi[kind == 3, 0] = torch.inf  # one free variable
+    hi[kind == 4, 1] = lo[kind == 4, 1]  # a fixed variable
+    return tuple(v.to(dtype) for v in (H, q, lo, hi))
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_fixed_two_variable_box_qp_is_box_qp_where_it_certifies(dtype):
+    """``box_qp_two`` (no host read, every test computed for every element) certifies an element only where
+    ``box_qp`` succeeds, and then returns its point and clamped set; on the strictly convex problems it
+    certifies (box_qp needs no iteration there), and the indefinite ones are never certified."""
+    from controllers.boxqp import box_qp_two
+
+    H, q, lo, hi = _two_variable_problems(400, dtype)
+    ref = box_qp(H, q, lo, hi)
+    x, cert, clamped = box_qp_two(H, q, lo, hi)
+    assert x.dtype == dtype and cert.shape == (400,)
+    indefinite = torch.arange(400) < 50
+    assert not cert[indefinite].any()
+    assert cert[~indefinite].float().mean() > 0.95
+    assert (ref.converged[cert]).all()
+    torch.testing.assert_close(x[cert], ref.x[cert], atol=0, rtol=0)
+    assert torch.equal(clamped[cert], ref.clamped[cert])
+
+
+def test_the_elementwise_objective_gap_equals_the_lapack_one():
+    from controllers.boxqp import _jacobi, _objective_gap
+
+    H, q, lo, hi = _two_variable_problems(200, torch.float64, seed=1)
+    x = box_qp(H, q, lo, hi).x.nan_to_num(0.0)
+    dsq, _ = _jacobi(H)
+    a, b = _objective_gap(H, q, lo, hi, x, dsq), _objective_gap(H, q, lo, hi, x, dsq, small=True)
+    torch.testing.assert_close(b[0], a[0], atol=1e-15, rtol=1e-8)
+    torch.testing.assert_close(b[1], a[1], atol=0, rtol=0)
+    assert torch.equal(b[2], a[2])

@@ -6,6 +6,7 @@ element in the batch, and reload from the disk cache without building again.  Ea
 seconds to build, so the tests share the suite's cache directory (tests/conftest.py).
 """
 
+import dataclasses
 import math
 import os
 
@@ -255,3 +256,76 @@ def test_float32_swingup_equals_the_eager_loop():
     assert comp.u.dtype == torch.float32
     assert (eager.status.reason == int(Reason.CONVERGED)).all()
     _assert_same(eager, comp, tol=1e-4)
+
+
+# ---- two limited controls: the box QPs of the backward pass inside the program
+
+
+@dataclasses.dataclass(frozen=True)
+class Skater:
+    """A point on a slope pushed by two limited forces: ``x = [p₁, p₂]``, ``u = [f₁, f₂]``,
+    ``x⁺ = x + dt (u − c x + s sin(p₂, p₁))`` (a small system: its program builds quickly)."""
+
+    dt: float = 0.1
+    c: float = 0.2
+    s: float = 0.5
+    n = 2
+    m = 2
+    time_invariant = True
+
+    def step(self, x, u, t=0):
+        return x + self.dt * (u - self.c * x + self.s * torch.sin(x.flip(-1)))
+
+    def jacobian(self, x, u, t=0):
+        eye = torch.eye(2, dtype=x.dtype, device=x.device)
+        cos = torch.cos(x.flip(-1))
+        swap = torch.stack([torch.stack([torch.zeros_like(cos[..., 0]), cos[..., 0]], -1),
+                            torch.stack([cos[..., 1], torch.zeros_like(cos[..., 1])], -1)], -2)
+        A = eye + self.dt * (self.s * swap - self.c * eye)
+        return A, (self.dt * eye).expand(*x.shape[:-1], 2, 2)
+
+
+def _skater(B: int, dtype=D, T: int = 20):
+    g = torch.Generator().manual_seed(11)
+    x0 = (torch.rand(B, 2, generator=g, dtype=D) * 4 - 2).to(dtype)
+    Q = torch.diag(torch.tensor([1.0, 2.0], dtype=dtype)).expand(T + 1, 2, 2).clone()
+    Q[-1] *= 20
+    R = torch.tensor([[0.05, 0.02], [0.02, 0.08]], dtype=dtype)
+    cost = QuadraticCost(Q=Q, R=R, x_ref=torch.tensor([1.5, -1.0], dtype=dtype))
+    return ILQRProblem(Skater(), cost, x0, T, u_lower=torch.tensor([-1.0, -0.6], dtype=dtype),
+                       u_upper=torch.tensor([0.8, 1.0], dtype=dtype))
+
+
+def test_two_limited_controls_run_one_program_per_iteration_and_equal_the_eager_loop():
+    """(float32 inside the program: the box QP is solved and certified as box_qp does, in float64 —
+    tests/controllers/test_boxqp.py::test_the_fixed_two_variable_box_qp_is_box_qp_where_it_certifies.)"""
+    dtype = D
+    p = _skater(6, dtype)
+    eager, comp = _both(p)
+    assert (eager.status.reason == int(Reason.CONVERGED)).all()
+    assert eager.clamped.any() and (~eager.clamped).any()  # the box QPs have clamped and free controls
+    assert any("m=2;bounded=True" in k[1] for k in _iteration_programs())
+    _assert_same(eager, comp)
+
+
+def test_a_final_pass_whose_box_qp_the_program_cannot_certify_is_run_again_eagerly(monkeypatch):
+    """The gains at the returned point come from a backward-pass program whose box QPs are box_qp's first
+    step; where it reports an uncertified element the pass runs again eagerly.  Here the program's result
+    is replaced by garbage marked failed: the returned gains must still equal the eager loop's."""
+    import controllers._ilqr_sweeps as sw
+
+    real, calls = sw.run_flat, []
+
+    def uncertified(name, key, fn, args, layout, bs, out_lead):
+        out = real(name, key, fn, args, layout, bs, out_lead)
+        if name != "ilqr_backward":
+            return out
+        calls.append(key)
+        return (torch.full_like(out[0], math.nan), torch.full_like(out[1], math.nan), out[2],
+                torch.zeros_like(out[3]), *out[4:])
+
+    monkeypatch.setattr(sw, "run_flat", uncertified)
+    eager, comp = _both(_skater(3))
+    assert calls and all("m=2;bounded=True" in k for k in calls)
+    assert (comp.status.reason == int(Reason.CONVERGED)).all()
+    _assert_same(eager, comp)
