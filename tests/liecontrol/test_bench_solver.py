@@ -20,11 +20,15 @@ KEYS = {"workload", "batch", "dtype", "device", "ours_ms", "anchor", "anchor_ms"
 
 @pytest.fixture(scope="module")
 def quick_run(tmp_path_factory):
+    """``--eager``: the compiled programs at these sizes would take minutes to build, and their numbers are
+    compared with the eager path's in tests/controllers/test_compiled_sweeps.py and test_esmpc_compiled.py;
+    here the command's plumbing is under test (``compiled`` records what ran)."""
     path = tmp_path_factory.mktemp("bench") / "solver.json"
     threads = torch.get_num_threads()
     printed = io.StringIO()
     with contextlib.redirect_stdout(printed):
-        rc = cli.main(["bench", "solver", "--quick", "--threads", str(threads + 1), "--json", str(path)])
+        rc = cli.main(["bench", "solver", "--quick", "--eager", "--threads", str(threads + 1), "--json",
+                       str(path)])
     return {"rc": rc, "records": json.loads(path.read_text()), "printed": printed.getvalue(),
             "threads_after": torch.get_num_threads(), "threads": threads}
 
@@ -36,6 +40,7 @@ def test_quick_run_writes_every_workload_with_the_schema(quick_run):
     assert {r["workload"] for r in records} == set(solver.WORKLOADS)
     for r in records:
         assert KEYS <= set(r), r
+        assert r["compiled"] is False  # --eager reached every workload
         assert r["device"] == "cpu" and r["dtype"] in ("float32", "float64")
         assert isinstance(r["batch"], int) and r["batch"] >= 1
         assert r["ours_ms"] is not None and math.isfinite(r["ours_ms"]) and r["ours_ms"] > 0, r
