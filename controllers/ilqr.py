@@ -144,11 +144,11 @@ class ILQROptions:
             ``R = 1e-12`` stops on one, J = 3.75 against 1.65).
         compile: run the time sweeps of each iteration (the backward Riccati pass, the costates of the
             certificate, the rollouts of the line search) as compiled programs
-            (:mod:`controllers._compiled`): built once per problem structure (a few seconds, then cached on
-            disk across processes), any batch size.  Same numbers as the eager path up to round-off.  Sweeps
-            the compiler cannot take run eagerly: several limited controls (the backward pass's inner box
-            QP), time-varying dynamics, or dynamics whose parameters are batched tensors or require grad
-            (the rollouts); ``grad="unrolled"`` runs eagerly.
+            (:mod:`controllers._compiled`): built once per problem structure (1-6 minutes on a 2-core
+            machine, then cached on disk across processes), any batch size.  Same numbers as the eager path
+            up to round-off.  Sweeps the compiler cannot take run eagerly: three or more limited controls
+            (the backward pass's inner box QP), time-varying dynamics, or dynamics whose parameters are
+            batched tensors or require grad (the rollouts); ``grad="unrolled"`` runs eagerly.
     """
 
     max_iter: int = 100

@@ -285,8 +285,8 @@ def bench_solver(p: argparse.ArgumentParser) -> None:
     p.add_argument("--quick", action="store_true", help="tiny sizes (a smoke run of seconds)")
     p.add_argument("--eager", action="store_true",
                    help="run iLQR's time sweeps eagerly (default: compiled programs, "
-                        "ILQROptions(compile=True); the first run builds them, a few seconds each, cached on "
-                        "disk)")
+                        "ILQROptions(compile=True); the first run builds them, 1-6 minutes each on a 2-core "
+                        "machine, cached on disk)")
     _common(p, threads=None)
     p.add_argument("--threads", type=thread_count, default=1, metavar="N",
                    help="torch intra-op threads, and the anchors' (1: per-core timings)")
