@@ -501,6 +501,42 @@ def reproduce_pose_mpc(p: argparse.ArgumentParser) -> None:
     _common(p, out="out/pose_mpc", plots=True)
 
 
+# ------------------------------------------------------------------------------------------- cookbook
+
+
+def _examples_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--examples", type=existing_dir, default=None, metavar="DIR",
+                   help="folder of the example files (default: examples/cookbook of the source tree)")
+
+
+def cookbook_list(p: argparse.ArgumentParser) -> None:
+    _examples_option(p)
+
+
+def _check_cookbook_run(args: argparse.Namespace) -> str | None:
+    from liecontrol._cookbook_index import discover
+
+    if args.all == bool(args.names):
+        return "name the examples to run, or pass --all (not both)"
+    try:
+        known = {e.name for e in discover(args.examples)}
+    except (FileNotFoundError, ValueError) as e:
+        return str(e)
+    unknown = [n for n in args.names if n not in known]
+    if unknown:
+        return (f"argument NAME: no cookbook example {', '.join(unknown)} (see `liecontrol cookbook list`; "
+                f"{len(known)} examples)")
+    return None
+
+
+def cookbook_run(p: argparse.ArgumentParser) -> None:
+    p.add_argument("names", nargs="*", metavar="NAME", help="examples to run (names from `cookbook list`)")
+    p.add_argument("--all", action="store_true", help="run every example")
+    _examples_option(p)
+    _common(p, out="out/cookbook", plots=True, quiet=True)
+    p.set_defaults(_check=_check_cookbook_run)
+
+
 # --------------------------------------------------------------------------------------------- table
 
 #: (command path, options builder, module with ``run(args)``, one-line help).  A path of two words is a
@@ -527,6 +563,10 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
     (("bench", "solver"), bench_solver, "liecontrol.bench.solver",
      "the solver workloads (MPC steps, iLQR swing-ups, the MPC policy head, the cookbook manipulator) vs "
      "crocoddyl, CasADi, a numpy iLQR and SB3's MLP policy"),
+    (("cookbook", "list"), cookbook_list, "liecontrol.cookbook",
+     "every example of the seed-004 cookbook (robot manipulation) with its seed section"),
+    (("cookbook", "run"), cookbook_run, "liecontrol.cookbook",
+     "run cookbook examples (NAME... or --all): figures and a JSON of their checked outcomes"),
     (("reproduce", "me2"), reproduce_me2, "liecontrol.reproduce.me2",
      f"pose prediction over a 300 ms horizon by the second-order Magnus (ME2) linearization (Table 1, "
      f"Figs. 2-4) of {ME2_PAPER}"),
@@ -543,6 +583,8 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
 )
 
 GROUPS = {
+    "cookbook": "the seed-004 cookbook (Calinon, A Math Cookbook for Robot Manipulation) as examples on the "
+                "library, each with a checked outcome",
     "bench": "benchmarks against other libraries (the anchors), measured in the same run",
     "learn": "learning with the differentiable MPC",
     "reproduce": f"the experiments of the papers this project implements: {ME2_PAPER}; {MANIFOLD_PAPER}",

@@ -1,0 +1,36 @@
+"""The seed-004 §9 examples (examples/cookbook/ilqr_*.py on controllers.task_costs): each task's outcome,
+checked from the trajectories the example returns its numbers for, plus the figure."""
+
+from examples.cookbook import ilqr_bounded, ilqr_distance, ilqr_manipulator_com, ilqr_obstacle
+
+
+def _run(mod, tmp_path) -> dict:
+    res = mod.run(tmp_path)
+    assert (tmp_path / f"{mod.__name__.rsplit('.', 1)[-1]}.png").stat().st_size > 1000
+    failed = [k for k, v in res["checks"].items() if not v]
+    assert not failed, (failed, res["values"])
+    return res["values"]
+
+
+def test_obstacles_avoided_and_target_reached(tmp_path):
+    v = _run(ilqr_obstacle, tmp_path)
+    assert v["max_final_error"] < 1e-2 and v["max_depth"] <= 0.02
+    assert v["straight_line_collisions"] >= v["batch"] // 2  # the obstacles are in the way
+
+
+def test_centre_of_mass_kept_in_its_box(tmp_path):
+    v = _run(ilqr_manipulator_com, tmp_path)
+    assert v["max_reach_error"] < 2e-2 and v["max_com_excess"] <= 1e-2
+    assert v["targets_com_out_without_com_cost"] >= 3
+
+
+def test_joint_limits_and_object_boundaries(tmp_path):
+    v = _run(ilqr_bounded, tmp_path)
+    assert v["max_outside_object"] <= 1e-3 and v["max_joint_excess"] <= 1e-2
+    assert v["certified_at_1e-6"] == 4
+
+
+def test_distance_to_a_circle_and_an_ellipse_contour(tmp_path):
+    v = _run(ilqr_distance, tmp_path)
+    assert v["max_circle_error"] <= 1e-3 and v["max_ellipse_error"] <= 2e-3
+    assert v["max_off_nearest"] <= 0.05
