@@ -12,6 +12,8 @@ Submodules (loaded on first use, ``controllers.riccati``):
 ``implicit``   implicit (KKT) gradients of the LQ solution and of iLQR's
 ``basis``      piecewise, RBF, Bernstein and Fourier basis functions (§6)
 ``ilqr``       iLQR (batch and recursive) with control limits (§8)
+``ilqr_lifted`` batch iLQR (Algorithm 4) in ``[x0; w]`` with ``u = Ψ w``: control primitives (§9.12)
+               and initial-state optimization (§9.4)
 ``task_costs`` the §9 cost zoo as residuals with Jacobians: tracking, joint/task/object bounds, CoM,
                ellipsoid obstacles, distances, composed into one ``ResidualCost``
 ``boxqp``      batched box-constrained QP (projected Newton)
@@ -29,7 +31,7 @@ Private: ``_validate`` (argument checks), ``_lq_kernels`` (the Riccati sweeps sh
 import importlib
 
 __all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis",
-           "ilqr", "task_costs", "boxqp", "mpc", "manifold_mpc", "ik", "systems"]
+           "ilqr", "ilqr_lifted", "task_costs", "boxqp", "mpc", "manifold_mpc", "ik", "systems"]
 
 
 def __getattr__(name: str):

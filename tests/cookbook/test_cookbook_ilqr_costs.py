@@ -1,7 +1,14 @@
 """The seed-004 §9 examples (examples/cookbook/ilqr_*.py on controllers.task_costs): each task's outcome,
 checked from the trajectories the example returns its numbers for, plus the figure."""
 
-from examples.cookbook import ilqr_bounded, ilqr_distance, ilqr_manipulator_com, ilqr_obstacle
+from examples.cookbook import (
+    ilqr_bounded,
+    ilqr_distance,
+    ilqr_init_state,
+    ilqr_manipulator_com,
+    ilqr_obstacle,
+    ilqr_primitives,
+)
 
 
 def _run(mod, tmp_path) -> dict:
@@ -34,3 +41,16 @@ def test_distance_to_a_circle_and_an_ellipse_contour(tmp_path):
     v = _run(ilqr_distance, tmp_path)
     assert v["max_circle_error"] <= 1e-3 and v["max_ellipse_error"] <= 2e-3
     assert v["max_off_nearest"] <= 0.05
+
+
+def test_base_placement_by_initial_state_optimization(tmp_path):
+    v = _run(ilqr_init_state, tmp_path)
+    assert v["max_via_error"] < 1e-2 and v["max_base_drift"] < 1e-2
+    assert v["min_base_displacement"] > 1.0 and v["min_cost_ratio_fixed_over_free"] > 100
+
+
+def test_control_primitives_and_coordination(tmp_path):
+    v = _run(ilqr_primitives, tmp_path)
+    assert v["cost_full"] <= v["cost_primitives"] <= 1.1 * v["cost_full"] < v["cost_coordinated"]
+    assert v["variables_primitives"] < v["variables_full"] / 5
+    assert v["max_via_error"] < 0.05

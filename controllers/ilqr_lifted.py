@@ -1,0 +1,263 @@
+"""Batch iLQR over a parameterization of the controls and of the initial state (seed 004 §8.1, §9.4, §9.12).
+
+Algorithm 4 (Eq. 87 / 108) is a Gauss-Newton iteration on the whole control sequence: with the
+linearization ``x = S_x x_0 + S_u u`` (transfer matrices of the ``A_t, B_t`` along the current
+trajectory, Appendix A), one step solves
+
+    (S_uᵀ H_xx S_u + H_uu) Δu = -(S_uᵀ g_x + g_u)
+
+(plain derivatives ``g, H`` of the cost, :mod:`controllers.costs`; ``H_xx = 2 JᵀQJ`` for a
+:class:`~controllers.costs.ResidualCost`).  This module takes the decision vector to be
+
+    z = [x_0 ; w],    u = Ψ w,
+
+* **control primitives** ``u = Ψ w`` (§9.12, as §7.3 does for LQT): ``Ψ (T m, K)`` from
+  :func:`controllers.lifted.control_primitives` and :mod:`controllers.basis`, a coordination matrix
+  folded in; ``Ψ = I`` is Algorithm 4 itself;
+* **initial-state optimization** (§9.4, Eq. 109-110): with ``x0_weight = w̄ (n,)`` the initial state is a
+  decision too, with the cost ``Σ_i w̄_i (x_0,i - x̄_0,i)²`` around the problem's ``x̄_0``; ``w̄_i = 0``
+  frees entry ``i`` (the seed's ``R̃`` block of zeros), a large one pins it (Eq. 110).  E.g. a robot's
+  base location as two prismatic joints whose later motion is priced out by a large control weight.
+
+The step with ``S = [S_x, S_u Ψ]`` is ``(Sᵀ H_xx S + blockdiag(2 diag(w̄), Ψᵀ H_uu Ψ) + μ I) Δz = -g_z``
+(cross terms ``H_ux`` included), then the backtracking line search of Algorithm 1 (``α = 1, ½, ...``, the
+first that lowers the cost; if none does, ``μ`` grows and the step is retried next iteration).
+
+Status (per element, :class:`~controllers.problem.Reason`): ``CONVERGED`` where the gradient ``g_z`` at
+the returned point is at most ``tol`` relative to its scale ``max(‖|S_xᵀ g_x| + ...|‖∞ of the terms,
+max_i H_ii ‖z‖∞)`` (a backward error, as :attr:`controllers.ilqr.ILQROptions.tol_kkt`), else
+``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (``μ`` past ``mu_max``) or ``NONFINITE_INPUT`` (NaN/inf in
+that element's ``x0``; its outputs are NaN and the other elements are solved as if alone).  Control
+limits are not supported (a box on ``u = Ψ w`` is not a box on ``w``): :func:`controllers.ilqr.ilqr` takes
+them.  Differentiation: the returned tensors carry no graph (``torch.no_grad``); for gradients through
+the solution use :func:`controllers.ilqr.ilqr`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from controllers.costs import cost_derivatives
+from controllers.dynamics import rollout, trajectory_jacobians
+from controllers.ilqr import ILQRProblem
+from controllers.lifted import transfer_matrices
+from controllers.problem import Reason, SolverStatus
+
+__all__ = ["LiftedILQRSolution", "ilqr_lifted"]
+
+
+@dataclass(frozen=True)
+class LiftedILQRSolution:
+    """Result of :func:`ilqr_lifted`.
+
+    Attributes:
+        x: ``(*B, T+1, n)`` states; ``u``: ``(*B, T, m)`` controls ``Ψ w``; ``w``: ``(*B, K)`` weights;
+        x0: ``(*B, n)`` the (optimized) initial state; cost: ``(*B,)`` including the ``x0_weight`` term;
+        status: per-element :class:`~controllers.problem.SolverStatus`; cost_history: ``(iters+1, *B)``;
+        grad_residual: ``(*B,)`` ``‖g_z‖∞`` over its scale at the returned point (``CONVERGED`` where at
+        most ``tol``).
+    """
+
+    x: Tensor
+    u: Tensor
+    w: Tensor
+    x0: Tensor
+    cost: Tensor
+    status: SolverStatus
+    cost_history: Tensor
+    grad_residual: Tensor
+
+
+def _check(problem, Psi, x0_weight, max_iter, tol, line_search_steps):
+    fn = "ilqr_lifted"
+    if not isinstance(problem, ILQRProblem):
+        raise TypeError(f"{fn}: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
+    if problem.u_lower is not None or problem.u_upper is not None:
+        raise ValueError(f"{fn}: control limits are not supported (a box on u = Ψw is not a box on w); use "
+                         "controllers.ilqr.ilqr for limited controls")
+    T, m = problem.T, problem.m
+    if Psi is not None:
+        if not isinstance(Psi, Tensor) or Psi.dim() < 2 or Psi.shape[-2] != T * m:
+            raise ValueError(f"{fn}: argument 'Psi' must be a (*B, T·m, K) = (*B, {T * m}, K) tensor, got "
+                             f"{tuple(Psi.shape) if isinstance(Psi, Tensor) else type(Psi).__name__}")
+        if Psi.dtype != problem.dtype:
+            raise TypeError(f"{fn}: argument 'Psi' must have the problem's dtype {problem.dtype}, got "
+                            f"{Psi.dtype}")
+    if x0_weight is not None:
+        if not isinstance(x0_weight, Tensor) or x0_weight.shape[-1:] != (problem.n,):
+            raise ValueError(f"{fn}: argument 'x0_weight' must be a (*B, n) = (*B, {problem.n}) tensor")
+        if bool((x0_weight < 0).any()) or not bool(torch.isfinite(x0_weight).all()):
+            raise ValueError(f"{fn}: argument 'x0_weight' must be finite and non-negative")
+    if not isinstance(max_iter, int) or max_iter < 1:
+        raise ValueError(f"{fn}: argument 'max_iter' must be a positive int, got {max_iter!r}")
+    if tol is not None and not tol > 0:
+        raise ValueError(f"{fn}: argument 'tol' must be positive, got {tol!r}")
+    if not isinstance(line_search_steps, int) or line_search_steps < 1:
+        raise ValueError(f"{fn}: argument 'line_search_steps' must be a positive int, got "
+                         f"{line_search_steps!r}")
+
+
+class _Model:
+    """Cost, gradient and Gauss-Newton Hessian in ``z = [x0; w]`` at one point (all ``(*B, ...)``)."""
+
+    def __init__(self, problem: ILQRProblem, Psi: Tensor, wbar: Tensor | None, xbar: Tensor, bs):
+        self.p, self.Psi, self.wbar, self.xbar, self.bs = problem, Psi, wbar, xbar, bs
+
+    def controls(self, w: Tensor) -> Tensor:
+        p = self.p
+        return (self.Psi @ w.unsqueeze(-1)).squeeze(-1).reshape(*w.shape[:-1], p.T, p.m)
+
+    def cost(self, x0: Tensor, w: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        u = self.controls(w)
+        x = rollout(self.p.dynamics, x0, u)
+        c = self.p.cost.evaluate(x, u)
+        if self.wbar is not None:
+            c = c + (self.wbar * (x0 - self.xbar) ** 2).sum(-1)
+        return c, x, u
+
+    def derivatives(self, x0: Tensor, w: Tensor, x: Tensor, u: Tensor):
+        p, bs = self.p, self.bs
+        T, n, m = p.T, p.n, p.m
+        A, B = trajectory_jacobians(p.dynamics, x[..., :-1, :], u)
+        Sx, Su = transfer_matrices(A.movedim(0, -3), B.movedim(0, -3), None, T)[:2]
+        Sx, Su = Sx.expand(*bs, *Sx.shape[-2:]), Su.expand(*bs, *Su.shape[-2:])
+        gx, gu, Hxx, Hux, Huu = cost_derivatives(p.cost, x, u)
+        gx, gu = gx.expand(*bs, T + 1, n), gu.expand(*bs, T, m)
+        Hxx, Huu = Hxx.expand(*bs, T + 1, n, n), Huu.expand(*bs, T, m, m)
+        Suw = Su @ self.Psi  # (*B, (T+1) n, K)
+        S = torch.cat([Sx, Suw], -1) if self.wbar is not None else Suw
+        Sk = S.reshape(*bs, T + 1, n, S.shape[-1])
+        # Sᵀ H_xx S with the block-diagonal H_xx
+        H = torch.einsum("...tik,...til->...kl", Sk, Hxx @ Sk)
+        Huu_Psi = torch.einsum("...tab,...tbk->...tak", Huu, self.Psi.reshape(*self.Psi.shape[:-2], T, m, -1)
+                               .expand(*bs, T, m, self.Psi.shape[-1]))
+        Hw = self.Psi.mT @ Huu_Psi.reshape(*bs, T * m, -1)
+        guw = (self.Psi.mT @ gu.reshape(*bs, T * m, 1)).squeeze(-1)
+        nx = 0
+        if self.wbar is not None:
+            nx = n
+            Hw = torch.cat([torch.cat([torch.diag_embed(2 * self.wbar.expand(*bs, n)),
+                                       Hw.new_zeros(*bs, n, Hw.shape[-1])], -1),
+                            torch.cat([Hw.new_zeros(*bs, Hw.shape[-1], n), Hw], -1)], -2)
+            guw = torch.cat([2 * self.wbar * (x0 - self.xbar), guw], -1)
+        H = H + Hw
+        if Hux is not None:  # Σ_t Δu_tᵀ H_ux,t Δx_t with Δu = Ψ_t Δw, Δx_t = S_t Δz
+            Hux = Hux.expand(*bs, T, m, n)
+            Psi_t = self.Psi.reshape(*self.Psi.shape[:-2], T, m, -1).expand(*bs, T, m, self.Psi.shape[-1])
+            if nx:
+                Psi_t = torch.cat([Psi_t.new_zeros(*bs, T, m, nx), Psi_t], -1)
+            C = torch.einsum("...tak,...tai,...til->...kl", Psi_t, Hux, Sk[..., :T, :, :])
+            H = H + C + C.mT
+        gx_z = (S.mT @ gx.reshape(*bs, -1, 1)).squeeze(-1)
+        H = 0.5 * (H + H.mT)
+        z = torch.cat([x0.expand(*bs, n), w], -1) if nx else w
+        curvature = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
+        scale = torch.maximum((gx_z.abs() + guw.abs()).amax(-1), curvature * z.abs().amax(-1))
+        return gx_z + guw, H, scale
+
+
+@torch.no_grad()
+def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: Tensor | None = None,
+                w_init: Tensor | None = None, max_iter: int = 100, tol: float | None = None,
+                line_search_steps: int = 10, mu_init: float = 0.0, mu_max: float = 1e10
+                ) -> LiftedILQRSolution:
+    """Batch iLQR (Algorithm 4) in ``z = [x_0; w]`` with ``u = Ψ w`` (module docstring).
+
+    Args:
+        problem: an :class:`~controllers.ilqr.ILQRProblem` without control limits (any dynamics and cost).
+        Psi: ``(T m, K)`` or ``(*B, T m, K)`` control primitives (time-major stacking ``u = [u_0; ...]``);
+            ``None``: the identity (every control free, Algorithm 4).
+        x0_weight: ``(n,)`` or ``(*B, n)`` non-negative weights ``w̄`` of ``Σ w̄_i (x_0,i - x̄_0,i)²``: the
+            initial state is optimized too (Eq. 109-110); ``None``: ``x_0 = problem.x0`` fixed.
+        w_init: ``(*B, K)`` initial weights (zeros by default).
+        max_iter, tol: iterations at most, and the certificate's relative gradient tolerance (default
+            ``1e-8`` in float64, ``1e-4`` in float32).
+        line_search_steps: step sizes ``1, ½, ..., 2^-(steps-1)`` tried at once per iteration.
+        mu_init, mu_max: Levenberg-Marquardt damping ``μ I`` of the step: it starts at ``mu_init``, grows
+            ×10 (from at least 1e-6) after a failed line search and shrinks ×10 after a full step; past
+            ``mu_max`` the element stops with ``LINE_SEARCH_FAILED``.
+    """
+    _check(problem, Psi, x0_weight, max_iter, tol, line_search_steps)
+    T, n, m = problem.T, problem.n, problem.m
+    dtype, device = problem.dtype, problem.device
+    kw = dict(dtype=dtype, device=device)
+    if Psi is None:
+        Psi = torch.eye(T * m, **kw)
+    bs = torch.broadcast_shapes(problem.batch_shape, Psi.shape[:-2],
+                                () if x0_weight is None else x0_weight.shape[:-1])
+    K = Psi.shape[-1]
+    if tol is None:
+        tol = 1e-4 if dtype in (torch.float32, torch.float16, torch.bfloat16) else 1e-8
+    xbar = problem.x0.expand(*bs, n)
+    bad = ~torch.isfinite(xbar).all(-1)
+    if not torch.isfinite(Psi).all():
+        bad = bad | ~torch.isfinite(Psi).all(-1).all(-1).expand(bs)
+    xbar = torch.where(bad[..., None], torch.zeros((), **kw), xbar)
+    Psi = torch.where(bad[..., None, None], torch.zeros((), **kw), Psi.expand(*bs, T * m, K))
+    model = _Model(problem, Psi, None if x0_weight is None else x0_weight.to(**kw), xbar, bs)
+    w = torch.zeros(*bs, K, **kw) if w_init is None else w_init.to(**kw).expand(*bs, K).clone()
+    x0 = xbar.clone()
+    mu = torch.full(bs, mu_init, **kw)
+    c, x, u = model.cost(x0, w)
+    history = [c]
+    done = bad.clone()
+    reason = torch.where(bad, int(Reason.NONFINITE_INPUT), int(Reason.MAX_ITERATIONS)).to(torch.int64)
+    iters = torch.zeros(bs, dtype=torch.int64, device=device)
+    alphas = 0.5 ** torch.arange(line_search_steps, **kw)
+    free_x0 = x0_weight is not None
+    g, H, scale = model.derivatives(x0, w, x, u)
+    for _ in range(max_iter):
+        res = g.abs().amax(-1) / scale.clamp_min(torch.finfo(dtype).tiny)
+        certified = res <= tol
+        reason = torch.where(~done & certified, int(Reason.CONVERGED), reason)
+        done = done | certified
+        if bool(done.all()):
+            break
+        eye = torch.eye(H.shape[-1], **kw)
+        L, info = torch.linalg.cholesky_ex(H + mu[..., None, None] * eye)
+        ok = (info == 0) & ~done
+        L = torch.where(ok[..., None, None], L, eye)
+        dz = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
+        dz = torch.where(ok[..., None], dz, torch.zeros((), **kw))
+        # all step sizes at once (Algorithm 1): candidates (S, *B, ...)
+        a = alphas.reshape(-1, *[1] * (len(bs) + 1))
+        z = torch.cat([x0, w], -1) if free_x0 else w
+        zc = z + a * dz
+        x0c, wc = (zc[..., :n], zc[..., n:]) if free_x0 else (x0.expand(len(alphas), *bs, n), zc)
+        cc, xc, uc = model.cost(x0c, wc)
+        better = (cc < c) & ok & torch.isfinite(cc)
+        first = torch.where(better.any(0), better.to(torch.int64).argmax(0), 0)
+        take = better.any(0)
+        def pick(v: Tensor, first: Tensor = first) -> Tensor:
+            idx = first.reshape(1, *bs, *[1] * (v.dim() - 1 - len(bs))).expand(1, *v.shape[1:])
+            return torch.gather(v, 0, idx)[0]
+
+        iters = iters + (~done).to(torch.int64)
+        x0 = torch.where(take[..., None], pick(x0c), x0)
+        w = torch.where(take[..., None], pick(wc), w)
+        x = torch.where(take[..., None, None], pick(xc), x)
+        u = torch.where(take[..., None, None], pick(uc), u)
+        c = torch.where(take, pick(cc), c)
+        full = take & (first == 0)
+        grown = torch.where(done, mu, (mu * 10).clamp_min(1e-6))
+        mu = torch.where(take, torch.where(full, mu / 10, mu), grown)
+        mu = torch.where(mu < 1e-12, torch.zeros((), **kw), mu)
+        failed = ~done & (mu > mu_max)
+        reason = torch.where(failed, int(Reason.LINE_SEARCH_FAILED), reason)
+        done = done | failed
+        history.append(c)
+        g, H, scale = model.derivatives(x0, w, x, u)
+    res = g.abs().amax(-1) / scale.clamp_min(torch.finfo(dtype).tiny)
+    certified = (res <= tol) & ~bad
+    reason = torch.where(certified, int(Reason.CONVERGED),
+                         torch.where(reason == int(Reason.CONVERGED), int(Reason.MAX_ITERATIONS), reason))
+    nan = torch.full((), float("nan"), **kw)
+    x = torch.where(bad[..., None, None], nan, x)
+    u = torch.where(bad[..., None, None], nan, u)
+    return LiftedILQRSolution(
+        x=x, u=u, w=torch.where(bad[..., None], nan, w), x0=torch.where(bad[..., None], nan, x0),
+        cost=torch.where(bad, nan, c), status=SolverStatus(reason == int(Reason.CONVERGED), iters, reason),
+        cost_history=torch.stack(history), grad_residual=torch.where(bad, nan, res))
