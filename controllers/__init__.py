@@ -20,6 +20,9 @@ Submodules (loaded on first use, ``controllers.riccati``):
 ``mpc``        receding-horizon MPC, ``MPCState`` and the ``MPCPolicy`` module
 ``manifold_mpc`` error-state MPC on ``torchlie`` manifolds (seed 003 Algorithm 1 and its iterated variant)
 ``ik``         damped least squares and batched IK
+``optim``      gradient descent, Newton, Gauss-Newton with backtracking; ridge/weighted/constrained least
+               squares (§3), batched with certified statuses
+``ergodic``    ergodic control (§10): SMC (myopic and planned) and HEDAC, several agents
 ``systems``    system models
 =============  =====================================================================================
 
@@ -30,8 +33,8 @@ Private: ``_validate`` (argument checks), ``_lq_kernels`` (the Riccati sweeps sh
 
 import importlib
 
-__all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis",
-           "ilqr", "ilqr_lifted", "task_costs", "boxqp", "mpc", "manifold_mpc", "ik", "systems"]
+__all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis", "ilqr", "ilqr_lifted",
+           "task_costs", "boxqp", "mpc", "manifold_mpc", "ik", "optim", "ergodic", "systems"]
 
 
 def __getattr__(name: str):
