@@ -5,11 +5,14 @@ iLQR's Gauss-Newton step (Eq. 108) needs, per time step, a residual ``f(x_t)`` a
 ResidualCost`).  The cookbook builds every task from a few such pieces, each a :class:`Map` here, composed:
 
 * task maps ``g(x)``: :func:`state` (the state itself), :func:`planar_ee` (end-effector position and
-  orientation of a planar arm, §4), :func:`planar_com` (its centre of mass, §9.5);
+  orientation of a planar arm, §4), :func:`planar_com` (its centre of mass, §9.5), composed with
+  :func:`on_joints` (a chain on some of the joints: the two arms of the bimanual robot of §9.6),
+  :func:`concat` and :func:`mean`, or any function with :func:`autograd_map`;
 * residuals on a map: :func:`track` (``g(x) - μ_t``, §9.1), :func:`cut` (zero inside a box and the signed
   distance outside, in an optionally rotated object frame: bounded joint space §9.2, bounded task space
   §9.3, prismatic object boundaries §9.3.1), :func:`avoid` (ellipsoid obstacles, §9.7) and
-  :func:`distance` (reaching or keeping a distance / an ellipse contour, §9.8);
+  :func:`distance` (reaching or keeping a distance / an ellipse contour, §9.8) and :func:`manipulability`
+  (the geodesic distance of ``J Jᵀ`` to a desired SPD matrix, §9.9);
 * :func:`residual_cost` stacks terms ``(map, Q)`` into one :class:`~controllers.costs.ResidualCost` with a
   block-diagonal precision.
 
@@ -30,7 +33,9 @@ from torch import Tensor
 
 from controllers.costs import ResidualCost
 
-__all__ = ["Map", "state", "planar_ee", "planar_com", "track", "cut", "avoid", "distance", "residual_cost"]
+__all__ = ["Map", "autograd_map", "state", "planar_ee", "planar_com", "on_joints", "concat", "mean", "track",
+           "cut", "avoid", "distance", "manipulability", "residual_cost", "bimanual_hands", "bimanual_com",
+           "BIMANUAL_LEFT", "BIMANUAL_RIGHT"]
 
 
 @dataclass(frozen=True)
@@ -126,6 +131,93 @@ def planar_com(lengths: Sequence[float] | Tensor) -> Map:
                             (w * torch.cos(phi)).flip(-1).cumsum(-1).flip(-1)], -2)
 
     return Map(f, J, 2)
+
+
+def autograd_map(f: Callable[[Tensor], Tensor], p: int) -> Map:
+    """A map whose Jacobian is taken by autograd, one backward pass per output row (the per-step residual
+    ``f (*B, T+1, n) -> (*B, T+1, p)`` must not mix time steps or batch elements)."""
+    if not callable(f) or not isinstance(p, int) or p < 1:
+        raise TypeError("autograd_map: expected a callable f and a positive int p")
+
+    def J(x: Tensor) -> Tensor:
+        with torch.enable_grad():
+            xg = x.detach().requires_grad_(True)
+            y = f(xg)
+            rows = [torch.autograd.grad(y[..., i].sum(), xg, retain_graph=i < p - 1)[0] for i in range(p)]
+        return torch.stack(rows, -2)
+
+    return Map(f, J, p)
+
+
+def on_joints(g: Map, joints: Sequence[int], n: int) -> Map:
+    """``g`` applied to the joints ``x[..., joints]`` of an ``n``-dimensional state, its Jacobian scattered
+    into the columns of those joints (zero elsewhere): e.g. the left arm ``[0, 1, 2]`` and the right arm
+    ``[0, 3, 4]`` of the bimanual robot of §9.6, which share the torso joint 0."""
+    _check_map(g, "on_joints")
+    idx = list(joints)
+    if not idx or any(not isinstance(j, int) or not 0 <= j < n for j in idx) or len(set(idx)) != len(idx):
+        raise ValueError(f"on_joints: argument 'joints' must be distinct indices in [0, {n}), got {joints!r}")
+
+    def J(x: Tensor) -> Tensor:
+        out = x.new_zeros(*x.shape[:-1], g.p, n)
+        out[..., idx] = g.J(x[..., idx])
+        return out
+
+    return Map(lambda x: g.f(x[..., idx]), J, g.p)
+
+
+def concat(*maps: Map) -> Map:
+    """The maps' outputs concatenated (e.g. both hands of a bimanual robot, ``p = Σ p_i``)."""
+    if not maps:
+        raise ValueError("concat: give at least one map")
+    for g in maps:
+        _check_map(g, "concat")
+    return Map(lambda x: torch.cat([g.f(x) for g in maps], -1),
+               lambda x: torch.cat([g.J(x) for g in maps], -2), sum(g.p for g in maps))
+
+
+def mean(*maps: Map, weights: Sequence[float] | None = None) -> Map:
+    """Weighted average ``Σ_i a_i g_i(x)`` of maps of one size (weights default to ``1/len``): e.g. the
+    centre of mass of a robot from the centres of its chains."""
+    if not maps:
+        raise ValueError("mean: give at least one map")
+    for g in maps:
+        _check_map(g, "mean")
+    if len({g.p for g in maps}) != 1:
+        raise ValueError(f"mean: the maps must have one output size, got {[g.p for g in maps]}")
+    a = [1.0 / len(maps)] * len(maps) if weights is None else list(weights)
+    if len(a) != len(maps):
+        raise ValueError(f"mean: {len(maps)} maps but {len(a)} weights")
+    return Map(lambda x: sum(w * g.f(x) for w, g in zip(a, maps)),
+               lambda x: sum(w * g.J(x) for w, g in zip(a, maps)), maps[0].p)
+
+
+#: joints of the left and right chains of the 5-link bimanual robot (§9.6): the torso joint 0 is shared
+BIMANUAL_LEFT, BIMANUAL_RIGHT = (0, 1, 2), (0, 3, 4)
+
+
+def _bimanual_chains(lengths, fn: str) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    ell = _lengths(lengths, fn)
+    if ell.shape[0] != 5:
+        raise ValueError(f"{fn}: argument 'lengths' must hold the 5 link lengths (torso, left upper and "
+                         f"lower arm, right upper and lower arm), got {ell.shape[0]}")
+    return tuple(ell[list(BIMANUAL_LEFT)].tolist()), tuple(ell[list(BIMANUAL_RIGHT)].tolist())
+
+
+def bimanual_hands(lengths: Sequence[float] | Tensor) -> Map:
+    """Both hands of the 5-link planar bimanual robot (§9.6, Fig. 26): a torso link (joint 0) carrying a
+    left arm (joints 1-2) and a right arm (joints 3-4); ``f = [left xy, right xy]`` ``(p = 4)``."""
+    left, right = _bimanual_chains(lengths, "bimanual_hands")
+    return concat(on_joints(planar_ee(left, orientation=False), list(BIMANUAL_LEFT), 5),
+                  on_joints(planar_ee(right, orientation=False), list(BIMANUAL_RIGHT), 5))
+
+
+def bimanual_com(lengths: Sequence[float] | Tensor) -> Map:
+    """Centre of mass of the bimanual robot with unit masses at the joints and two at the torso's tip (§9.6):
+    ``(2 p_1 + p_2 + p_3 + p_4 + p_5) / 6``, the average of the two 3-link chains' centres of mass."""
+    left, right = _bimanual_chains(lengths, "bimanual_com")
+    return mean(on_joints(planar_com(left), list(BIMANUAL_LEFT), 5),
+                on_joints(planar_com(right), list(BIMANUAL_RIGHT), 5))
 
 
 def _check_map(g, fn: str) -> None:
@@ -255,6 +347,25 @@ def distance(g: Map, mu, radius=None, *, Sigma=None) -> Map:
         return -de
 
     return Map(f, J, 1)
+
+
+def manipulability(g: Map, S) -> Map:
+    """Manipulability tracking (§9.9, Eq. 111): the residual ``f = vec(log(S^{-1/2} M(x) S^{-1/2}))``, with
+    ``M(x) = J_g(x) J_g(x)ᵀ`` the manipulability ellipsoid of the map ``g`` (its end effector, centre of
+    mass, ...) and ``S (q, q)`` (or batched) the desired one; ``vec`` keeps the lower triangle with the
+    off-diagonal entries times √2 (the whitened Mandel coordinates of :class:`torchlie.manifolds.SPD`), so
+    ``‖f‖² = ‖log(S^{-1/2} M S^{-1/2})‖_F²`` is the squared affine-invariant geodesic distance.  Its
+    Jacobian is taken by autograd (exact at repeated eigenvalues)."""
+    from torchlie.manifolds import SPD
+
+    _check_map(g, "manipulability")
+    space = SPD(g.p)
+
+    def f(x: Tensor) -> Tensor:
+        Jg = g.J(x)
+        return space.log_at(_as(S, x, "S", "manipulability"), Jg @ Jg.mT, check=False)
+
+    return autograd_map(f, space.dim)
 
 
 def _block_diag_precision(Qs: list[Tensor], ps: list[int]) -> Tensor:

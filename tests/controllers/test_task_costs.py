@@ -10,8 +10,14 @@ from controllers.systems.arm import PlanarArm
 from controllers.task_costs import (
     Map,
     avoid,
+    bimanual_com,
+    bimanual_hands,
+    concat,
     cut,
     distance,
+    manipulability,
+    mean,
+    on_joints,
     planar_com,
     planar_ee,
     residual_cost,
@@ -144,3 +150,48 @@ def test_bad_input_is_named():
         residual_cost([(planar_ee(LENGTHS), torch.eye(2, dtype=D))], torch.eye(3, dtype=D))
     with pytest.raises(ValueError, match="at least one"):
         residual_cost([], torch.eye(3, dtype=D))
+
+
+def test_bimanual_maps_against_the_chains_joint_positions():
+    lengths = (1.5, 1.0, 0.8, 1.2, 0.6)
+    x = torch.randn(7, 5, generator=torch.Generator().manual_seed(6), dtype=D)
+    left = PlanarArm(links=3, lengths=(1.5, 1.0, 0.8)).fk(x[:, [0, 1, 2]])
+    right = PlanarArm(links=3, lengths=(1.5, 1.2, 0.6)).fk(x[:, [0, 3, 4]])
+    torch.testing.assert_close(bimanual_hands(lengths).f(x), torch.cat([left[:, -1], right[:, -1]], -1))
+    # unit masses at the joints, two at the torso's tip (shared by both chains)
+    com = (2 * left[:, 1] + left[:, 2] + left[:, 3] + right[:, 2] + right[:, 3]) / 6
+    torch.testing.assert_close(bimanual_com(lengths).f(x), com)
+    for m in (bimanual_hands(lengths), bimanual_com(lengths)):
+        xs = x[:, None, :]
+        torch.testing.assert_close(m.J(xs), _autograd_jacobian(m, xs), rtol=1e-12, atol=1e-12)
+        torch.testing.assert_close(m.J(xs), _fd_jacobian(m, xs), rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="5 link lengths"):
+        bimanual_hands((1.0, 1.0, 1.0))
+
+
+def test_manipulability_residual_is_the_spd_geodesic_distance():
+    from torchlie.manifolds import spd_dist
+
+    S = torch.tensor([[2.0, 0.3], [0.3, 0.7]], dtype=D)
+    m = manipulability(planar_ee(LENGTHS, orientation=False), S)
+    x = torch.randn(3, 4, 3, generator=torch.Generator().manual_seed(7), dtype=D)
+    f, J = m(x)
+    Jee = planar_ee(LENGTHS, orientation=False).J(x)
+    torch.testing.assert_close(f.norm(dim=-1), spd_dist(S, Jee @ Jee.mT))
+    torch.testing.assert_close(J, _fd_jacobian(m, x), rtol=1e-6, atol=1e-7)
+    # zero exactly at the desired ellipse
+    q = torch.tensor([0.3, 0.9, -0.4], dtype=D)
+    Jq = planar_ee(LENGTHS, orientation=False).J(q)
+    m2 = manipulability(planar_ee(LENGTHS, orientation=False), Jq @ Jq.mT)
+    assert m2.f(q).abs().max() < 1e-12
+
+
+def test_combinators_check_their_arguments():
+    with pytest.raises(ValueError, match="distinct indices"):
+        on_joints(state(2), [0, 0], 3)
+    with pytest.raises(ValueError, match="one output size"):
+        mean(state(2), state(3))
+    with pytest.raises(ValueError, match="2 maps but 3 weights"):
+        mean(state(2), state(2), weights=[1.0, 2.0, 3.0])
+    with pytest.raises(ValueError, match="at least one map"):
+        concat()
