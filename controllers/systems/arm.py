@@ -258,6 +258,19 @@ class PlanarArm:
         _, _, _, C, _ = self._kinematics(x)
         return _rcumsum(_rcumsum(K * C, -1), -2)
 
+    def gravity_torque(self, q: Tensor) -> Tensor:
+        """Gravitational joint torque ``g(q) = ∂V/∂q (*B, k)`` of the manipulator equation (seed 004 Eq. 169,
+        Eq. 198: ``g = Lᵀ g̃``), ``g̃_j = g μ_j l_j cos φ_j`` in the absolute angles: ``g_a = Σ_{j≥a} g̃_j``.
+        The torque ``τ = g(q)`` holds the arm still at ``q`` (zero velocity, zero acceleration)."""
+        if q.shape[-1] != self.links:
+            raise ValueError(f"PlanarArm.gravity_torque: q must have shape (*B, {self.links}), "
+                             f"got {tuple(q.shape)}")
+        length, mu, _ = self._inertia(q)
+        g = param(self.gravity, q, "gravity", "PlanarArm")
+        if isinstance(g, Tensor):
+            g = g[..., None]
+        return _rcumsum(g * mu * length * torch.cos(q.cumsum(-1)))
+
     def energy(self, x: Tensor) -> Tensor:
         """Mechanical energy ``½ φ̇ᵀ W φ̇ + g Σ μ_j l_j sin φ_j`` ``(*B,)`` (zero potential at ``y = 0``)."""
         length, mu, K = self._inertia(x)
