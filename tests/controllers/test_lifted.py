@@ -158,3 +158,103 @@ def test_singular_normal_matrix_is_flagged_per_element():
     sol = lifted.solve_lifted(p)
     assert sol.status.converged.tolist() == [True, False]
     assert torch.isfinite(sol.u[0]).all()
+
+
+def _dense_normal_equations(p):
+    """The pre-block formulation written out: blockdiag(Q_t), blockdiag(R_t) and the stacked cross term
+    as dense matrices, H = Suᵀ Q Su + R + Suᵀ N + Nᵀ Su, g = Suᵀ (Q s0 + q) + r + Nᵀ s0 (Eq. 62)."""
+    T, n, m = p.T, p.n, p.m
+    cc = p.cost.canonical(T)
+    Sx, Su, sc = lifted.transfer_matrices(p.dynamics.A, p.dynamics.B, p.dynamics.c, T)
+    Qb, Rb = lifted.block_diag_time(cc.Q, T + 1), lifted.block_diag_time(cc.R, T)
+    Nb = torch.cat([lifted.block_diag_time(cc.N, T), torch.zeros(*cc.N.shape[:-3], n, T * m, dtype=D)], -2)
+    s0 = (Sx @ p.x0.unsqueeze(-1)).squeeze(-1) + sc
+    H = Su.mT @ Qb @ Su + Rb + Su.mT @ Nb + Nb.mT @ Su
+    g = (Su.mT @ (Qb @ s0.unsqueeze(-1))).squeeze(-1) + (Su.mT @ cc.q.flatten(-2).unsqueeze(-1)).squeeze(-1)
+    g = g + cc.r.flatten(-2) + (Nb.mT @ s0.unsqueeze(-1)).squeeze(-1)
+    return H, g, Su, s0
+
+
+def test_block_lifted_equals_dense_formulation_and_riccati_batched_time_varying():
+    from controllers import riccati
+    g = torch.Generator().manual_seed(11)
+    p = random_problem(g, b=(5,), T=7, n=4, m=2)  # time-varying A, B, c, Q, R, N, refs, linear terms
+    H, gv, Su, s0 = _dense_normal_equations(p)
+    lq = lifted.lifted_quadratic(p)
+    torch.testing.assert_close(lq.H, 0.5 * (H + H.mT), atol=1e-10, rtol=1e-12)
+    torch.testing.assert_close(lq.g, gv, atol=1e-10, rtol=1e-12)
+    u_dense = torch.linalg.solve(H, -gv)
+    sol = lifted.solve_lifted(p)
+    torch.testing.assert_close(sol.u.flatten(-2), u_dense, atol=1e-9, rtol=0)
+    x_dense = ((Su @ u_dense.unsqueeze(-1)).squeeze(-1) + s0).reshape(5, 8, 4)
+    torch.testing.assert_close(sol.x, x_dense, atol=1e-9, rtol=0)
+    ric = riccati.solve(p, grad="none")
+    torch.testing.assert_close(sol.u, ric.u, atol=1e-9, rtol=0)
+    torch.testing.assert_close(sol.cost, ric.cost, atol=1e-8, rtol=1e-10)
+    torch.testing.assert_close(sol.cost, p.cost.evaluate(sol.x, sol.u), atol=1e-9, rtol=1e-12)
+    # the state part alone is Suᵀ Q Su
+    cc = p.cost.canonical(p.T)
+    Qb = lifted.block_diag_time(cc.Q, p.T + 1)
+    torch.testing.assert_close(lifted.lifted_quadratic(p, state_part=True).Hx, Su.mT @ Qb @ Su,
+                               atol=1e-10, rtol=1e-12)
+
+
+def test_block_lifted_variants_equal_dense_formulation():
+    """Eq. 65 (optimized x0) and §7.3 (primitives) with block precisions against dense products."""
+    g = torch.Generator().manual_seed(12)
+    p = random_problem(g, b=(3,), T=6, n=3, m=2, cross=False, linear=False)
+    T, n, m = p.T, p.n, p.m
+    cc = p.cost.canonical(T)
+    Sx, Su, sc = lifted.transfer_matrices(p.dynamics.A, p.dynamics.B, p.dynamics.c, T)
+    Qb, Rb = lifted.block_diag_time(cc.Q, T + 1), lifted.block_diag_time(cc.R, T)
+    S = torch.cat([Sx, Su], -1)
+    Rz = torch.zeros(3, n + T * m, n + T * m, dtype=D)
+    Rz[:, n:, n:] = Rb
+    H = S.mT @ Qb @ S + Rz
+    gv = (S.mT @ (Qb @ sc.unsqueeze(-1) + cc.q.flatten(-2).unsqueeze(-1))).squeeze(-1)
+    gv[:, n:] += cc.r.flatten(-2)
+    z = torch.linalg.solve(H, -gv)
+    sol = lifted.solve_lifted(p, optimize_x0=True)
+    torch.testing.assert_close(sol.x0, z[:, :n], atol=1e-9, rtol=0)
+    torch.testing.assert_close(sol.u.flatten(-2), z[:, n:], atol=1e-9, rtol=0)
+    Psi = lifted.control_primitives(basis.rbf(T, 3, dtype=D), m)
+    s0 = (Sx @ p.x0.unsqueeze(-1)).squeeze(-1) + sc
+    Hw = Psi.T @ (Su.mT @ Qb @ Su + Rb) @ Psi
+    gw = Psi.T @ (Su.mT @ (Qb @ s0.unsqueeze(-1) + cc.q.flatten(-2).unsqueeze(-1))
+                  + cc.r.flatten(-2).unsqueeze(-1))
+    w = torch.linalg.solve(Hw, -gw.squeeze(-1))
+    torch.testing.assert_close(lifted.solve_lifted(p, Psi=Psi).w, w, atol=1e-9, rtol=0)
+
+
+def test_block_lifted_float32_and_gradients():
+    g = torch.Generator().manual_seed(13)
+    p = random_problem(g, b=(2,), T=4, n=3, m=2)
+    p32 = LQProblem(LinearDynamics(p.dynamics.A.float(), p.dynamics.B.float(), p.dynamics.c.float()),
+                    QuadraticCost(*(getattr(p.cost, k).float() for k in ("Q", "R", "x_ref", "u_ref", "N", "q",
+                                                                          "r"))), p.x0.float())
+    s32 = lifted.solve_lifted(p32)
+    assert s32.u.dtype == torch.float32
+    torch.testing.assert_close(s32.u.double(), lifted.solve_lifted(p).u, atol=1e-3, rtol=1e-3)
+    # gradients of the optimal controls w.r.t. x0 and the time-varying Q through the block path
+    Q0 = p.cost.Q.detach().clone().requires_grad_(True)
+    x0 = p.x0.detach().clone().requires_grad_(True)
+
+    def f(Q, x0):
+        c = dataclasses.replace(p.cost, Q=0.5 * (Q + Q.mT), check=False)
+        return lifted.solve_lifted(dataclasses.replace(p, cost=c, x0=x0)).u
+
+    assert torch.autograd.gradcheck(f, (Q0, x0))
+
+
+def test_full_matrices_equal_to_the_blocks_give_the_block_solution():
+    """Qbig = blockdiag(Q_t), Rbig = blockdiag(R_t), Ψ = I (the generic dense code paths, cross term N
+    included) reproduce the block-structured solve."""
+    g = torch.Generator().manual_seed(14)
+    p = random_problem(g, b=(2,), T=5, n=3, m=2)
+    ref = lifted.solve_lifted(p)
+    Qb = lifted.block_diag_time(p.cost.Q, p.T + 1)
+    Rb = lifted.block_diag_time(p.cost.R, p.T)
+    for kw in (dict(Qbig=Qb), dict(Rbig=Rb), dict(Qbig=Qb, Rbig=Rb), dict(Psi=torch.eye(10, dtype=D))):
+        sol = lifted.solve_lifted(p, **kw)
+        torch.testing.assert_close(sol.u, ref.u, atol=1e-9, rtol=0)
+        torch.testing.assert_close(sol.cost, ref.cost, atol=1e-9, rtol=1e-12)
