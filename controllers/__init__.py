@@ -8,6 +8,7 @@ Submodules (loaded on first use, ``controllers.riccati``):
                cost modules for ``MPCPolicy``
 ``problem``    LQ problems and solutions, per-element status (``Reason``), ``GradMode``
 ``lifted``     batch least-squares LQT with transfer matrices S_x, S_u (seed 004 §7, Eq. 61-65), oracle
+``lqt_cookbook`` §7's LQT variants: nullspace LQT, DMP as LQT with primitives, agents meeting, tennis serve
 ``riccati``    recursive Riccati LQR/LQT with feedback gains (§7.4-7.6); ``prepare`` for re-solves
 ``implicit``   implicit (KKT) gradients of the LQ solution and of iLQR's
 ``basis``      piecewise, RBF, Bernstein and Fourier basis functions (§6)
@@ -20,6 +21,9 @@ Submodules (loaded on first use, ``controllers.riccati``):
 ``mpc``        receding-horizon MPC, ``MPCState`` and the ``MPCPolicy`` module
 ``manifold_mpc`` error-state MPC on ``torchlie`` manifolds (seed 003 Algorithm 1 and its iterated variant)
 ``ik``         damped least squares and batched IK
+``planar_ik``  planar arms (§4-5): FK/Jacobians, Gauss-Newton IK (position, orientation, object frame),
+               task-priority IK with null-space projectors
+``impedance``  joint- and task-space impedance control with gravity compensation, simulated (§11)
 ``optim``      gradient descent, Newton, Gauss-Newton with backtracking; ridge/weighted/constrained least
                squares (§3), batched with certified statuses
 ``ergodic``    ergodic control (§10): SMC (myopic and planned) and HEDAC, several agents
@@ -34,7 +38,8 @@ Private: ``_validate`` (argument checks), ``_lq_kernels`` (the Riccati sweeps sh
 import importlib
 
 __all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis", "ilqr", "ilqr_lifted",
-           "task_costs", "boxqp", "mpc", "manifold_mpc", "ik", "optim", "ergodic", "systems"]
+           "task_costs", "lqt_cookbook", "boxqp", "mpc", "manifold_mpc", "ik", "planar_ik", "impedance",
+           "optim", "ergodic", "systems"]
 
 
 def __getattr__(name: str):

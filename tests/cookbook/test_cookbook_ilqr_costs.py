@@ -2,9 +2,11 @@
 checked from the trajectories the example returns its numbers for, plus the figure."""
 
 from examples.cookbook import (
+    ilqr_bimanual,
     ilqr_bounded,
     ilqr_distance,
     ilqr_init_state,
+    ilqr_manipulability,
     ilqr_manipulator_com,
     ilqr_obstacle,
     ilqr_primitives,
@@ -54,3 +56,13 @@ def test_control_primitives_and_coordination(tmp_path):
     assert v["cost_full"] <= v["cost_primitives"] <= 1.1 * v["cost_full"] < v["cost_coordinated"]
     assert v["variables_primitives"] < v["variables_full"] / 5
     assert v["max_via_error"] < 0.05
+
+
+def test_bimanual_reach_with_the_centre_of_mass_kept(tmp_path):
+    v = _run(ilqr_bimanual, tmp_path)
+    assert v["max_target_error"] < 1e-2 and v["max_com_drift"] <= 1e-2 < v["min_com_drift_without_term"]
+
+
+def test_manipulability_reached_on_the_spd_manifold(tmp_path):
+    v = _run(ilqr_manipulability, tmp_path)
+    assert v["max_final_distance"] < 1e-2 < v["min_initial_distance"]
