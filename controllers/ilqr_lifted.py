@@ -23,11 +23,14 @@ The step with ``S = [S_x, S_u Ψ]`` is ``(Sᵀ H_xx S + blockdiag(2 diag(w̄), �
 (cross terms ``H_ux`` included), then the backtracking line search of Algorithm 1 (``α = 1, ½, ...``, the
 first that lowers the cost; if none does, ``μ`` grows and the step is retried next iteration).
 
-Status (per element, :class:`~controllers.problem.Reason`): ``CONVERGED`` where the gradient ``g_z`` at
-the returned point is at most ``tol`` relative to its scale ``max(‖|S_xᵀ g_x| + ...|‖∞ of the terms,
-max_i H_ii ‖z‖∞)`` (a backward error, as :attr:`controllers.ilqr.ILQROptions.tol_kkt`), else
-``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (``μ`` past ``mu_max``) or ``NONFINITE_INPUT`` (NaN/inf in
-that element's ``x0``; its outputs are NaN and the other elements are solved as if alone).  Control
+Status (per element, :class:`~controllers.problem.Reason`): ``CONVERGED`` where every component of the
+gradient ``g_z`` at the returned point is at most ``tol`` times its own scale ``|Sᵀ g_x|_i + |g_w|_i +
+(|H| |z|)_i`` (the componentwise backward error of the Newton system; per component, so that a stiff block
+such as a pinned ``x_0`` cannot certify the others), else
+``MAX_ITERATIONS``, ``LINE_SEARCH_FAILED`` (``μ`` past ``mu_max``), ``NONFINITE_INPUT`` (NaN/inf in
+that element's ``x0``, ``Psi`` or ``w_init``) or ``DIVERGED`` (the first rollout's cost is not finite:
+NaN/inf in the cost's targets or batched weights); a failed element's outputs are NaN and the other
+elements are solved as if alone.  Control
 limits are not supported (a box on ``u = Ψ w`` is not a box on ``w``): :func:`controllers.ilqr.ilqr` takes
 them.  Differentiation: the returned tensors carry no graph (``torch.no_grad``); for gradients through
 the solution use :func:`controllers.ilqr.ilqr`.
@@ -41,7 +44,7 @@ import torch
 from torch import Tensor
 
 from controllers.costs import cost_derivatives
-from controllers.dynamics import rollout, trajectory_jacobians
+from controllers.dynamics import LinearDynamics, rollout, trajectory_jacobians
 from controllers.ilqr import ILQRProblem
 from controllers.lifted import transfer_matrices
 from controllers.problem import Reason, SolverStatus
@@ -57,7 +60,7 @@ class LiftedILQRSolution:
         x: ``(*B, T+1, n)`` states; ``u``: ``(*B, T, m)`` controls ``Ψ w``; ``w``: ``(*B, K)`` weights;
         x0: ``(*B, n)`` the (optimized) initial state; cost: ``(*B,)`` including the ``x0_weight`` term;
         status: per-element :class:`~controllers.problem.SolverStatus`; cost_history: ``(iters+1, *B)``;
-        grad_residual: ``(*B,)`` ``‖g_z‖∞`` over its scale at the returned point (``CONVERGED`` where at
+        grad_residual: ``(*B,)`` ``max_i |g_z,i| / scale_i`` at the returned point (``CONVERGED`` where at
         most ``tol``).
     """
 
@@ -71,7 +74,7 @@ class LiftedILQRSolution:
     grad_residual: Tensor
 
 
-def _check(problem, Psi, x0_weight, max_iter, tol, line_search_steps):
+def _check(problem, Psi, x0_weight, w_init, max_iter, tol, line_search_steps, mu_init):
     fn = "ilqr_lifted"
     if not isinstance(problem, ILQRProblem):
         raise TypeError(f"{fn}: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
@@ -91,7 +94,14 @@ def _check(problem, Psi, x0_weight, max_iter, tol, line_search_steps):
             raise ValueError(f"{fn}: argument 'x0_weight' must be a (*B, n) = (*B, {problem.n}) tensor")
         if bool((x0_weight < 0).any()) or not bool(torch.isfinite(x0_weight).all()):
             raise ValueError(f"{fn}: argument 'x0_weight' must be finite and non-negative")
-    if not isinstance(max_iter, int) or max_iter < 1:
+    if w_init is not None:
+        K = T * m if Psi is None else Psi.shape[-1]
+        if not isinstance(w_init, Tensor) or w_init.shape[-1:] != (K,):
+            raise ValueError(f"{fn}: argument 'w_init' must be a (*B, K) = (*B, {K}) tensor (K: columns of "
+                             "Psi)")
+    if not isinstance(mu_init, (int, float)) or isinstance(mu_init, bool) or not mu_init >= 0:
+        raise ValueError(f"{fn}: argument 'mu_init' must be a non-negative number, got {mu_init!r}")
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
         raise ValueError(f"{fn}: argument 'max_iter' must be a positive int, got {max_iter!r}")
     if tol is not None and not tol > 0:
         raise ValueError(f"{fn}: argument 'tol' must be positive, got {tol!r}")
@@ -105,6 +115,22 @@ class _Model:
 
     def __init__(self, problem: ILQRProblem, Psi: Tensor, wbar: Tensor | None, xbar: Tensor, bs):
         self.p, self.Psi, self.wbar, self.xbar, self.bs = problem, Psi, wbar, xbar, bs
+        K = Psi.shape[-1]
+        T, m = problem.T, problem.m
+        self.Psi_t = Psi.reshape(*Psi.shape[:-2], T, m, K).expand(*bs, T, m, K)
+        d = problem.dynamics
+        # linear dynamics: the transfer matrices are constant, built once; a rollout is then one product
+        self.linear = (transfer_matrices(d.A, d.B, d.c, problem.T) if isinstance(d, LinearDynamics) else None)
+
+    def rollout(self, x0: Tensor, u: Tensor) -> Tensor:
+        if self.linear is None:
+            return rollout(self.p.dynamics, x0, u)
+        Sx, Su, sc = self.linear
+        T, n, m = self.p.T, self.p.n, self.p.m
+        x = (Sx @ x0.unsqueeze(-1) + Su @ u.reshape(*u.shape[:-2], T * m, 1)).squeeze(-1)
+        if sc is not None:
+            x = x + sc
+        return x.reshape(*x.shape[:-1], T + 1, n)
 
     def controls(self, w: Tensor) -> Tensor:
         p = self.p
@@ -112,7 +138,7 @@ class _Model:
 
     def cost(self, x0: Tensor, w: Tensor) -> tuple[Tensor, Tensor, Tensor]:
         u = self.controls(w)
-        x = rollout(self.p.dynamics, x0, u)
+        x = self.rollout(x0, u)
         c = self.p.cost.evaluate(x, u)
         if self.wbar is not None:
             c = c + (self.wbar * (x0 - self.xbar) ** 2).sum(-1)
@@ -121,8 +147,11 @@ class _Model:
     def derivatives(self, x0: Tensor, w: Tensor, x: Tensor, u: Tensor):
         p, bs = self.p, self.bs
         T, n, m = p.T, p.n, p.m
-        A, B = trajectory_jacobians(p.dynamics, x[..., :-1, :], u)
-        Sx, Su = transfer_matrices(A.movedim(0, -3), B.movedim(0, -3), None, T)[:2]
+        if self.linear is not None:
+            Sx, Su = self.linear[:2]
+        else:
+            A, B = trajectory_jacobians(p.dynamics, x[..., :-1, :], u)
+            Sx, Su = transfer_matrices(A.movedim(0, -3), B.movedim(0, -3), None, T)[:2]
         Sx, Su = Sx.expand(*bs, *Sx.shape[-2:]), Su.expand(*bs, *Su.shape[-2:])
         gx, gu, Hxx, Hux, Huu = cost_derivatives(p.cost, x, u)
         gx, gu = gx.expand(*bs, T + 1, n), gu.expand(*bs, T, m)
@@ -132,9 +161,8 @@ class _Model:
         Sk = S.reshape(*bs, T + 1, n, S.shape[-1])
         # Sᵀ H_xx S with the block-diagonal H_xx
         H = torch.einsum("...tik,...til->...kl", Sk, Hxx @ Sk)
-        Huu_Psi = torch.einsum("...tab,...tbk->...tak", Huu, self.Psi.reshape(*self.Psi.shape[:-2], T, m, -1)
-                               .expand(*bs, T, m, self.Psi.shape[-1]))
-        Hw = self.Psi.mT @ Huu_Psi.reshape(*bs, T * m, -1)
+        Huu_Psi = torch.einsum("...tab,...tbk->...tak", Huu, self.Psi_t)
+        Hw = self.Psi.mT @ Huu_Psi.reshape(*bs, T * m, self.Psi.shape[-1])
         guw = (self.Psi.mT @ gu.reshape(*bs, T * m, 1)).squeeze(-1)
         nx = 0
         if self.wbar is not None:
@@ -146,17 +174,24 @@ class _Model:
         H = H + Hw
         if Hux is not None:  # Σ_t Δu_tᵀ H_ux,t Δx_t with Δu = Ψ_t Δw, Δx_t = S_t Δz
             Hux = Hux.expand(*bs, T, m, n)
-            Psi_t = self.Psi.reshape(*self.Psi.shape[:-2], T, m, -1).expand(*bs, T, m, self.Psi.shape[-1])
+            Psi_t = self.Psi_t
             if nx:
                 Psi_t = torch.cat([Psi_t.new_zeros(*bs, T, m, nx), Psi_t], -1)
             C = torch.einsum("...tak,...tai,...til->...kl", Psi_t, Hux, Sk[..., :T, :, :])
             H = H + C + C.mT
-        gx_z = (S.mT @ gx.reshape(*bs, -1, 1)).squeeze(-1)
+        gx_z = (S.mT @ gx.reshape(*bs, (T + 1) * n, 1)).squeeze(-1)
         H = 0.5 * (H + H.mT)
         z = torch.cat([x0.expand(*bs, n), w], -1) if nx else w
-        curvature = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
-        scale = torch.maximum((gx_z.abs() + guw.abs()).amax(-1), curvature * z.abs().amax(-1))
+        # per component, as the backward error of the linear system H z = -(terms): |g_i| against
+        # |terms_i| + (|H| |z|)_i — a stiff block (a pinned x0) cannot hide the other components' residual
+        scale = gx_z.abs() + guw.abs() + (H.abs() @ z.abs().unsqueeze(-1)).squeeze(-1)
         return gx_z + guw, H, scale
+
+
+def _residual(g: Tensor, scale: Tensor) -> Tensor:
+    """``max_i |g_i| / scale_i`` (a component with zero gradient counts 0, even at zero scale)."""
+    r = g.abs() / scale.clamp_min(torch.finfo(g.dtype).tiny)
+    return torch.where(g == 0, torch.zeros((), dtype=g.dtype, device=g.device), r).amax(-1)
 
 
 @torch.no_grad()
@@ -180,14 +215,19 @@ def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: T
             ×10 (from at least 1e-6) after a failed line search and shrinks ×10 after a full step; past
             ``mu_max`` the element stops with ``LINE_SEARCH_FAILED``.
     """
-    _check(problem, Psi, x0_weight, max_iter, tol, line_search_steps)
+    _check(problem, Psi, x0_weight, w_init, max_iter, tol, line_search_steps, mu_init)
     T, n, m = problem.T, problem.n, problem.m
     dtype, device = problem.dtype, problem.device
     kw = dict(dtype=dtype, device=device)
     if Psi is None:
         Psi = torch.eye(T * m, **kw)
-    bs = torch.broadcast_shapes(problem.batch_shape, Psi.shape[:-2],
-                                () if x0_weight is None else x0_weight.shape[:-1])
+    try:
+        bs = torch.broadcast_shapes(problem.batch_shape, Psi.shape[:-2],
+                                    () if x0_weight is None else x0_weight.shape[:-1],
+                                    () if w_init is None else w_init.shape[:-1])
+    except RuntimeError as e:
+        raise ValueError(f"ilqr_lifted: the batch dims of problem {tuple(problem.batch_shape)}, 'Psi', "
+                         f"'x0_weight' and 'w_init' do not broadcast ({e})") from None
     K = Psi.shape[-1]
     if tol is None:
         tol = 1e-4 if dtype in (torch.float32, torch.float16, torch.bfloat16) else 1e-8
@@ -195,22 +235,30 @@ def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: T
     bad = ~torch.isfinite(xbar).all(-1)
     if not torch.isfinite(Psi).all():
         bad = bad | ~torch.isfinite(Psi).all(-1).all(-1).expand(bs)
+    if w_init is not None:
+        bad = bad | ~torch.isfinite(w_init).all(-1).expand(bs)
     xbar = torch.where(bad[..., None], torch.zeros((), **kw), xbar)
     Psi = torch.where(bad[..., None, None], torch.zeros((), **kw), Psi.expand(*bs, T * m, K))
     model = _Model(problem, Psi, None if x0_weight is None else x0_weight.to(**kw), xbar, bs)
     w = torch.zeros(*bs, K, **kw) if w_init is None else w_init.to(**kw).expand(*bs, K).clone()
+    w = torch.where(bad[..., None], torch.zeros((), **kw), w)
     x0 = xbar.clone()
     mu = torch.full(bs, mu_init, **kw)
     c, x, u = model.cost(x0, w)
     history = [c]
     done = bad.clone()
     reason = torch.where(bad, int(Reason.NONFINITE_INPUT), int(Reason.MAX_ITERATIONS)).to(torch.int64)
+    # NaN/inf in the cost's data (a target, a batched weight) shows as a non-finite first rollout
+    diverged = ~bad & ~torch.isfinite(c)
+    reason = torch.where(diverged, int(Reason.DIVERGED), reason)
+    bad = bad | diverged
+    done = done | diverged
     iters = torch.zeros(bs, dtype=torch.int64, device=device)
     alphas = 0.5 ** torch.arange(line_search_steps, **kw)
     free_x0 = x0_weight is not None
     g, H, scale = model.derivatives(x0, w, x, u)
     for _ in range(max_iter):
-        res = g.abs().amax(-1) / scale.clamp_min(torch.finfo(dtype).tiny)
+        res = _residual(g, scale)
         certified = res <= tol
         reason = torch.where(~done & certified, int(Reason.CONVERGED), reason)
         done = done | certified
@@ -250,7 +298,7 @@ def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: T
         done = done | failed
         history.append(c)
         g, H, scale = model.derivatives(x0, w, x, u)
-    res = g.abs().amax(-1) / scale.clamp_min(torch.finfo(dtype).tiny)
+    res = _residual(g, scale)
     certified = (res <= tol) & ~bad
     reason = torch.where(certified, int(Reason.CONVERGED),
                          torch.where(reason == int(Reason.CONVERGED), int(Reason.MAX_ITERATIONS), reason))

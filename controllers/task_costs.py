@@ -236,11 +236,15 @@ def cut(g: Map, lower=None, upper=None, *, center=None, frame=None) -> Map:
 
         e = Uᵀ (g(x) - μ),    f^cut_i = e_i - clip(e_i, lower_i, upper_i),    J = diag(e ∉ box) Uᵀ J_g,
 
-    with ``μ = center`` (default 0) and the box axes ``U = frame`` (``(p, p)`` or batched, default ``I``):
+    with ``μ = center`` (default 0) and the box axes ``U = frame`` (default ``I``; ``(p, p)``, or batched
+    ``(*B, 1, p, p)`` / ``(*B, T+1, p, p)`` with the time dim); ``lower``, ``upper`` and ``center``
+    broadcast against ``(*B, T+1, p)`` (a batched limit ``(*B, 1, p)``):
     ``g = state(n)`` bounds joint angles (§9.2), ``g = planar_ee(...)`` the end effector (§9.3), a rotated
     ``frame`` an object's prismatic boundaries (§9.3.1).  ``None`` or ``±inf`` limits are open sides; a
     ``lower > upper`` box is a ``ValueError`` where the limits are plain numbers."""
     _check_map(g, "cut")
+    if lower is None and upper is None:
+        raise ValueError("cut: give 'lower', 'upper' or both (with neither the residual is identically zero)")
     for name, v in (("lower", lower), ("upper", upper)):
         if v is not None and not isinstance(v, Tensor) and torch.as_tensor(v).isnan().any():
             raise ValueError(f"cut: argument '{name}' has NaN entries")
@@ -307,7 +311,8 @@ def avoid(g: Map, mu, Sigma) -> Map:
     """Ellipsoid obstacles (§9.7): ``f_k = max(0, 1 - e_k)``, ``e_k = (g(x) - μ_k)ᵀ Σ_k⁻¹ (g(x) - μ_k)``,
     which is 1 at a centre and 0 on and outside the boundary; ``J_k = -[e_k < 1] 2 (g(x) - μ_k)ᵀ Σ_k⁻¹ J_g``.
     ``mu (K, p)`` or ``(p,)`` centres and ``Sigma (K, p, p)`` or ``(p, p)`` shapes (``Σ = V Vᵀ``, the
-    columns of ``V`` the principal axes); one residual entry per obstacle."""
+    columns of ``V`` the principal axes), shared by the batch; batched ones carry the time dim,
+    ``(*B, 1, K, p)`` and ``(*B, 1, K, p, p)``; one residual entry per obstacle."""
     _check_map(g, "avoid")
     K = 1 if torch.as_tensor(mu).dim() <= 1 else torch.as_tensor(mu).shape[-2]
 
@@ -325,26 +330,35 @@ def avoid(g: Map, mu, Sigma) -> Map:
 def distance(g: Map, mu, radius=None, *, Sigma=None) -> Map:
     """Reaching or keeping a distance ``r`` to a target ``μ`` (§9.8): ``f = 1 - e``, ``e = ‖g(x) - μ‖² / r²``
     (0 on the sphere of radius ``r``), ``J = -2 (g(x) - μ)ᵀ J_g / r²``; with ``Sigma`` instead of ``radius``,
-    ``e = (g(x) - μ)ᵀ Σ⁻¹ (g(x) - μ)``: the contour of an ellipse.  One target ``μ (p,)``."""
+    ``e = (g(x) - μ)ᵀ Σ⁻¹ (g(x) - μ)``: the contour of an ellipse.  Per element and step: ``μ`` broadcasts
+    against ``(*B, T+1, p)``, ``radius`` against ``(*B, T+1)`` (a radius per problem: ``(*B, 1)``) and
+    ``Sigma`` against ``(*B, T+1, p, p)``."""
     _check_map(g, "distance")
     if (radius is None) == (Sigma is None):
         raise ValueError("distance: give exactly one of 'radius' and 'Sigma'")
     if radius is not None and not isinstance(radius, Tensor) and not float(radius) > 0:
         raise ValueError(f"distance: argument 'radius' must be positive, got {radius!r}")
 
-    def shape(x: Tensor) -> Tensor:
+    def parts(x: Tensor) -> tuple[Tensor, Tensor]:
+        d = g.f(x) - _as(mu, x, "mu", "distance")
         if Sigma is not None:
-            return _as(Sigma, x, "Sigma", "distance")
-        r = _as(radius, x, "radius", "distance")
-        return (r * r)[..., None, None] * torch.eye(g.p, dtype=x.dtype, device=x.device)
+            S = _as(Sigma, x, "Sigma", "distance")
+            if S.dim() < 2 or S.shape[-2:] != (g.p, g.p):
+                raise ValueError(f"distance: argument 'Sigma' must end in ({g.p}, {g.p}), got "
+                                 f"{tuple(S.shape)}")
+            Pd = (torch.linalg.inv(S) @ d.unsqueeze(-1)).squeeze(-1)
+        else:
+            r = _as(radius, x, "radius", "distance")
+            Pd = d / (r * r).unsqueeze(-1)
+        return d, Pd
 
     def f(x: Tensor) -> Tensor:
-        e, _, _ = _quadratic(g, mu, shape(x), x, "distance")
-        return 1 - e
+        d, Pd = parts(x)
+        return 1 - (d * Pd).sum(-1, keepdim=True)
 
     def J(x: Tensor) -> Tensor:
-        _, de, _ = _quadratic(g, mu, shape(x), x, "distance")
-        return -de
+        _, Pd = parts(x)
+        return -2 * Pd.unsqueeze(-2) @ g.J(x)
 
     return Map(f, J, 1)
 
@@ -393,6 +407,12 @@ def residual_cost(terms: Sequence[tuple[Map, Tensor]], R: Tensor) -> ResidualCos
         if t[1].dim() < 2 or t[1].shape[-2:] != (t[0].p, t[0].p):
             raise ValueError(f"residual_cost: terms[{i}] Q must end in ({t[0].p}, {t[0].p}) (the map's "
                              f"size), got {tuple(t[1].shape)}")
+    for i, (_, q) in enumerate(terms):
+        if q.dtype != terms[0][1].dtype or q.device != terms[0][1].device:
+            raise TypeError(f"residual_cost: terms[{i}] Q is {q.dtype} on {q.device}, terms[0] Q is "
+                            f"{terms[0][1].dtype} on {terms[0][1].device}: give every precision in one dtype")
+    if not isinstance(R, Tensor) or R.dtype != terms[0][1].dtype:
+        raise TypeError(f"residual_cost: 'R' must be a tensor of the precisions' dtype {terms[0][1].dtype}")
     maps = [m for m, _ in terms]
     Q = _block_diag_precision([q for _, q in terms], [m.p for m in maps])
 

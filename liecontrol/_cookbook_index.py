@@ -39,7 +39,10 @@ def section_key(section: str) -> tuple:
 
 
 def _constants(path: Path) -> dict[str, str]:
-    tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    try:
+        tree = ast.parse(path.read_text(encoding="utf-8"), filename=str(path))
+    except (SyntaxError, UnicodeDecodeError) as e:
+        raise ValueError(f"cookbook example {path} cannot be read: {type(e).__name__}: {e}") from None
     found: dict[str, str] = {}
     for node in tree.body:
         if isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name):
@@ -52,7 +55,8 @@ def discover(folder: str | Path | None = None) -> list[Example]:
     """The examples in ``folder`` (default :data:`DEFAULT_DIR`), sorted by seed section then name.
 
     Files starting with ``_`` are helpers, not examples.  A file without ``SECTION`` and ``TITLE`` string
-    constants raises ``ValueError`` naming it (an example the index cannot describe is a bug)."""
+    constants, or that does not parse, raises ``ValueError`` naming it (an example the index cannot
+    describe is a bug); a folder without examples raises ``FileNotFoundError``."""
     folder = DEFAULT_DIR if folder is None else Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(
@@ -67,4 +71,6 @@ def discover(folder: str | Path | None = None) -> list[Example]:
         if missing:
             raise ValueError(f"cookbook example {path} has no {' and '.join(missing)} string constant")
         out.append(Example(path.stem, c["SECTION"], c["TITLE"], path))
+    if not out:
+        raise FileNotFoundError(f"no cookbook examples (*.py files with SECTION and TITLE) in {folder}")
     return sorted(out, key=lambda e: (section_key(e.section), e.name))

@@ -509,8 +509,19 @@ def _examples_option(p: argparse.ArgumentParser) -> None:
                    help="folder of the example files (default: examples/cookbook of the source tree)")
 
 
+def _check_cookbook_list(args: argparse.Namespace) -> str | None:
+    from liecontrol._cookbook_index import discover
+
+    try:
+        discover(args.examples)
+    except (FileNotFoundError, ValueError) as e:
+        return str(e)
+    return None
+
+
 def cookbook_list(p: argparse.ArgumentParser) -> None:
     _examples_option(p)
+    p.set_defaults(_check=_check_cookbook_list)
 
 
 def _check_cookbook_run(args: argparse.Namespace) -> str | None:

@@ -5,13 +5,15 @@ Manipulation*) as runnable examples on the library.
 path, calls its ``run(out)`` (one intra-op thread unless ``--threads``), times it, and writes its figure
 ``OUT/NAME.png`` and the outcomes of all examples run to ``OUT/outcomes.json``: per example its section,
 title, seconds, the named checks (booleans: the task's outcome, e.g. "target reached within 1e-6") and
-values.  An example that raises is recorded with its error and the others still run.  The exit status is
+values (a non-finite value as ``null``).  An example that raises (or calls ``sys.exit``) is recorded with
+its error and the others still run; a name given twice runs once.  The exit status is
 1 when any check failed or any example raised.
 """
 
 from __future__ import annotations
 
 import importlib.util
+import math
 import sys
 import time
 import traceback
@@ -53,11 +55,15 @@ def run_example(ex: Example, out: Path | None) -> dict:
     try:
         mod = load_example(ex)
         checks, values = _check_outcome(ex.name, mod.run(out))
-    except Exception as e:  # one broken example must not hide the others' outcomes
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # one broken example (even one calling sys.exit) must not hide the others
         rec.update(seconds=time.perf_counter() - t0, ok=False, error=f"{type(e).__name__}: {e}",
                    checks={}, values={})
         traceback.print_exc(file=sys.stderr)
         return rec
+    # strict JSON has no NaN/inf: a non-finite value is recorded as null
+    values = {k: (v if not isinstance(v, float) or math.isfinite(v) else None) for k, v in values.items()}
     rec.update(seconds=time.perf_counter() - t0, ok=all(checks.values()), checks=checks, values=values)
     if out is not None:
         rec["figure"] = str(out / f"{ex.name}.png")
@@ -83,7 +89,7 @@ def run(args) -> int:
     if args.subcommand == "list":
         return _list(examples)
     by_name = {e.name: e for e in examples}
-    chosen = examples if args.all else [by_name[n] for n in args.names]
+    chosen = examples if args.all else [by_name[n] for n in dict.fromkeys(args.names)]  # once each
     out = None if args.no_plots else Path(args.out)
     torch.set_num_threads(args.threads)
     records = []

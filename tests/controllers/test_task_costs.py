@@ -195,3 +195,24 @@ def test_combinators_check_their_arguments():
         mean(state(2), state(2), weights=[1.0, 2.0, 3.0])
     with pytest.raises(ValueError, match="at least one map"):
         concat()
+
+
+def test_distance_broadcasts_per_element_and_step():
+    """A radius per problem and a target per time step are per element and step, not all pairs."""
+    ee = planar_ee(LENGTHS, orientation=False)
+    x = torch.randn(4, 6, 3, generator=torch.Generator().manual_seed(8), dtype=D)
+    r = torch.tensor([0.5, 1.0, 2.0, 4.0], dtype=D)
+    mu = torch.randn(6, 2, generator=torch.Generator().manual_seed(9), dtype=D)
+    m = distance(ee, mu, r[:, None])
+    f, J = m(x)
+    assert f.shape == (4, 6, 1) and J.shape == (4, 6, 1, 3)
+    want = 1 - ((ee.f(x) - mu) ** 2).sum(-1) / r[:, None] ** 2
+    torch.testing.assert_close(f[..., 0], want)
+    torch.testing.assert_close(J, _fd_jacobian(m, x), rtol=1e-6, atol=1e-7)
+
+
+def test_mixed_precision_dtypes_and_an_empty_cut_are_named():
+    with pytest.raises(TypeError, match=r"terms\[1\] Q is torch.float64"):
+        residual_cost([(state(2), torch.eye(2)), (state(3), torch.eye(3, dtype=D))], torch.eye(3))
+    with pytest.raises(ValueError, match="give 'lower', 'upper' or both"):
+        cut(state(2))

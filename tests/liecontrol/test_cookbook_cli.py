@@ -146,3 +146,31 @@ def test_the_readme_table_lists_every_example_of_the_source_tree():
     assert rows == {e.name: e.section for e in examples}
     for e in examples:
         assert f"figures/{e.name}.png" in readme
+
+
+def test_sys_exit_nan_values_duplicates_and_unparsable_files(examples, tmp_path, capsys):
+    _write(examples, "c_exit",
+           'SECTION = "3"\nTITLE = "exits"\n\n\ndef run(out=None):\n    import sys\n    sys.exit(0)\n')
+    _write(examples, "d_nan", 'SECTION = "3"\nTITLE = "nan"\n\n\ndef run(out=None):\n'
+           '    return {"checks": {"ok": True}, "values": {"v": float("nan")}}\n')
+    out = tmp_path / "out"
+    assert main(["cookbook", "run", "--all", "--out", str(out), "--quiet", "--examples", str(examples)]) == 1
+    text = (out / "outcomes.json").read_text()
+    rec = {r["name"]: r for r in json.loads(text)["examples"]}  # strict JSON readers reject NaN
+    assert "NaN" not in text and rec["d_nan"]["values"] == {"v": None}
+    assert "SystemExit" in rec["c_exit"]["error"] and rec["b_second"]["ok"]
+    assert main(["cookbook", "run", "a_first", "a_first", "--out", str(out), "--quiet",
+                 "--examples", str(examples)]) == 0
+    assert len(json.loads((out / "outcomes.json").read_text())["examples"]) == 1
+    (examples / "e_broken.py").write_text("SECTION = '1'\nTITLE = 'x'\ndef run(:\n")
+    for argv in (["cookbook", "list"], ["cookbook", "run", "a_first"]):
+        with pytest.raises(SystemExit) as e:
+            main(argv + ["--examples", str(examples)])
+        assert e.value.code == 2
+        assert "e_broken.py cannot be read: SyntaxError" in capsys.readouterr().err
+
+
+def test_a_folder_without_examples_is_an_error(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        main(["cookbook", "run", "--all", "--examples", str(tmp_path)])
+    assert "no cookbook examples" in capsys.readouterr().err
