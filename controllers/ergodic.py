@@ -83,6 +83,14 @@ def _tensor(x, name: str, fn: str, min_dim: int = 1) -> torch.Tensor:
     return x
 
 
+def _agents(x: torch.Tensor, name: str, fn: str) -> torch.Tensor:
+    """``x (*B, N, D)`` with at least one agent (an average over ``N = 0`` agents would be NaN)."""
+    if x.shape[-2] < 1:
+        raise ValueError(f"{fn}: argument '{name}' must hold N >= 1 agents (dim -2 of (..., N, D)), got "
+                         f"{tuple(x.shape)}")
+    return x
+
+
 def _pos_int(v, name: str, fn: str, minimum: int = 1) -> int:
     if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < minimum:
         raise ValueError(f"{fn}: argument '{name}' must be an int >= {minimum}, got {v!r}")
@@ -274,7 +282,7 @@ def running_coefficients(traj: torch.Tensor, *, n_basis: int, length: float) -> 
     Returns:
         ``(*B, T, K^D)``; ``[..., -1, :]`` is the average over the whole trajectory.
     """
-    traj = _tensor(traj, "traj", "running_coefficients", 3)
+    traj = _agents(_tensor(traj, "traj", "running_coefficients", 3), "traj", "running_coefficients")
     phi = fourier_basis(traj, n_basis=n_basis, length=length).mean(-2)   # (*B, T, K^D)
     t = torch.arange(1, traj.shape[-3] + 1, dtype=traj.dtype, device=traj.device)
     return phi.cumsum(-2) / t[:, None]
@@ -341,7 +349,7 @@ class SMCRollout(NamedTuple):
 
 def smc_init(x0: torch.Tensor, *, n_basis: int) -> SMCState:
     """Initial state for agents at ``x0 (*B, N, D)``, with no coefficients accumulated yet."""
-    x0 = _tensor(x0, "x0", "smc_init", 2)
+    x0 = _agents(_tensor(x0, "x0", "smc_init", 2), "x0", "smc_init")
     K = _pos_int(n_basis, "n_basis", "smc_init")
     zeros = x0.new_zeros(x0.shape[:-2] + (K ** x0.shape[-1],))
     return SMCState(x0, zeros, 0)
@@ -388,7 +396,7 @@ def smc_step(state: SMCState, w_hat: torch.Tensor, weights: torch.Tensor, *, n_b
         raise TypeError(f"{fn}: argument 'state' must be an SMCState (from smc_init), got "
                         f"{type(state).__name__}")
     dt = _pos_float(dt, "dt", fn)
-    x = _tensor(state.x, "state.x", fn, 2)
+    x = _agents(_tensor(state.x, "state.x", fn, 2), "state.x", fn)
     N = x.shape[-2]
     coeff_sum = state.coeff_sum + fourier_basis(x, n_basis=n_basis, length=length).sum(-2)
     n = state.n_steps + 1
@@ -416,7 +424,7 @@ def smc_rollout(x0: torch.Tensor, w_hat: torch.Tensor, *, n_steps: int, dt: floa
     T = _pos_int(n_steps, "n_steps", fn)
     if state is None:
         state = smc_init(x0, n_basis=n_basis)
-    x = _tensor(state.x, "x0", fn, 2)
+    x = _agents(_tensor(state.x, "x0", fn, 2), "x0" if x0 is state.x else "state.x", fn)
     w_hat = _tensor(w_hat, "w_hat", fn)
     if weights is None:
         weights = sobolev_weights(x.shape[-1], _pos_int(n_basis, "n_basis", fn), dtype=x.dtype,
@@ -484,7 +492,7 @@ def smc_plan(x0: torch.Tensor, u_init: torch.Tensor, w_hat: torch.Tensor, *, dt:
         :class:`SMCPlan`.
     """
     fn = "smc_plan"
-    x0 = _tensor(x0, "x0", fn, 2)
+    x0 = _agents(_tensor(x0, "x0", fn, 2), "x0", fn)
     u = _tensor(u_init, "u_init", fn, 3)
     w_hat = _tensor(w_hat, "w_hat", fn)
     dt = _pos_float(dt, "dt", fn)
@@ -768,7 +776,7 @@ def field_gradient_at(u: torch.Tensor, x: torch.Tensor, grid: HeatGrid) -> torch
 
 def hedac_init(x0: torch.Tensor, grid: HeatGrid) -> HEDACState:
     """Agents at ``x0 (*B, N, D)``, zero coverage and zero temperature."""
-    x0 = _tensor(x0, "x0", "hedac_init", 2)
+    x0 = _agents(_tensor(x0, "x0", "hedac_init", 2), "x0", "hedac_init")
     if x0.shape[-1] != grid.n_dims:
         raise ValueError(f"hedac_init: argument 'x0' must be (*B, N, D) with D = {grid.n_dims}, got "
                          f"{tuple(x0.shape)}")
@@ -785,7 +793,8 @@ def hedac_step(state: HEDACState, target: torch.Tensor, grid: HeatGrid, *, alpha
        normalize the total (Eq. 168 then 162): ``c``;
     2. source ``s`` from the residual ``e = p − c`` (Eq. 160-162);
     3. diffuse: ``n_substeps`` explicit steps of Eq. 163 over ``Δt`` (default: the fewest that are
-       stable, :func:`heat_step`), with the optional cooling ``−β u`` of [6] (``cooling = β``, default 0);
+       stable, :func:`heat_step`; fewer than stable raises a ``ValueError`` naming ``n_substeps``), with the
+       optional cooling ``−β u`` of [6] (``cooling = β``, default 0);
     4. move every agent along ``∇u(x_i)`` (Eq. 164) at speed ``u_max`` (velocity control, as in SMC),
        ``x ← clamp(x + Δt v, 0, ℓ)`` (the walls of the domain).
 
@@ -805,6 +814,13 @@ def hedac_step(state: HEDACState, target: torch.Tensor, grid: HeatGrid, *, alpha
     if n_substeps is None:
         n_substeps = max(1, math.ceil(dt * (2 * grid.n_dims * a / grid.spacing ** 2 + b) / 0.95))
     n_sub = _pos_int(n_substeps, "n_substeps", fn)
+    r = (dt / n_sub) * (2 * grid.n_dims * a / grid.spacing ** 2 + b)
+    if r > 1.0 + 1e-12:
+        need = math.ceil(dt * (2 * grid.n_dims * a / grid.spacing ** 2 + b))
+        raise ValueError(f"{fn}: argument 'n_substeps' = {n_sub} is too few for a stable explicit heat step: "
+                         f"(dt/n_substeps)*(2D*alpha/h^2 + cooling) = {r:.4g} > 1; use n_substeps >= {need} "
+                         "(or None for the default)")
+    _agents(_tensor(state.x, "state.x", fn, 2), "state.x", fn)
     p = grid.normalize(target)
     coverage = state.coverage + dt * agent_footprint(state.x, grid, shape=shape)
     c = grid.normalize(coverage)

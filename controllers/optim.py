@@ -30,6 +30,11 @@ Conventions
   ``α ≥ α_min`` passes, the element stops where it is (``LINE_SEARCH_FAILED``) instead of taking a step that
   increases its cost; an accepted step too small to change ``x`` in its precision stops it too
   (``STALLED``).
+* **Tolerance.**  ``tol=None`` (the default) is relative to the gradient's scale and to the precision:
+  ``tol_b = τ · max(1, ‖g(x₀)_b‖₂)`` per element, ``τ = 10⁻⁴`` in float32 and ``10⁻⁸`` in float64
+  (``10⁻⁶`` for :func:`gradient_descent`, which converges only linearly) — in float32 the gradient at the
+  minimizer of an ordinary problem is only resolved to about ``10⁻⁶ … 10⁻⁴`` of its scale.  A number
+  given as ``tol`` is used as it is (absolute, the same for every element).
 * **Status per element**: ``converged`` is ``‖g(x)‖₂ ≤ tol`` evaluated AT the returned ``x`` (and, for
   :func:`newton`, no clearly negative curvature there: else ``NOT_A_MINIMUM``); ``iterations`` counts the
   steps taken by that element; ``reason`` holds codes of :class:`controllers.problem.Reason`
@@ -80,7 +85,8 @@ class OptimResult:
         x: ``(*B, n)`` the returned iterate (``x0`` for a ``NONFINITE_INPUT`` element).
         cost: ``(*B,)`` ``c(x)`` at the returned ``x`` (``f(x)ᵀ W f(x)`` for Gauss–Newton).
         grad_norm: ``(*B,)`` ``‖g(x)‖₂`` at the returned ``x`` — the residual that ``converged`` checks.
-        converged: ``(*B,)`` bool — ``grad_norm ≤ tol`` at ``x`` (Newton: and not ``NOT_A_MINIMUM``).
+        converged: ``(*B,)`` bool — ``grad_norm ≤ tol`` at ``x`` (Newton: and not ``NOT_A_MINIMUM``; for the
+            default ``tol=None`` the per-element tolerance of the module notes).
         iterations: ``(*B,)`` int64 — steps taken by this element (``0`` if ``x0`` already converged).
         reason: ``(*B,)`` int64 codes of :class:`controllers.problem.Reason`.
     """
@@ -228,7 +234,10 @@ def _auto_jacobian(residual: Callable[[Tensor], Tensor], r: int, n: int
             eye = torch.eye(n_, dtype=x.dtype, device=x.device)
             tangents = eye.reshape((n_,) + (1,) * (x.dim() - 1) + (n_,)).expand((n_,) + tuple(x.shape))
             cols = torch.func.vmap(lambda v: torch.func.jvp(residual, (x,), (v,))[1])(tangents)
-            return residual(x), cols.movedim(0, -1)  # (n, *B, r) -> (*B, r, n)
+            fx = residual(x)
+            # forward AD promotes a 0-dim float32 tangent combined with a Python float to float64 (as for an
+            # unbatched x0): the values are those of the float32 computation, so restore the residual's dtype
+            return fx, cols.movedim(0, -1).to(fx.dtype)  # (n, *B, r) -> (*B, r, n)
     return jac
 
 
@@ -250,9 +259,20 @@ def _spd_solve(H: Tensor, g: Tensor) -> Tensor:
     return d
 
 
-def _minimize(cost, derivs, direction, x0: Tensor, *, tol: float, max_iter: int, line_search: bool,
-              step_size: float, alpha_min: float, second_order_check: bool) -> OptimResult:
+def _default_tau(dtype: torch.dtype, tau64: float) -> float:
+    """``τ`` of the default tolerance (module notes): ``10⁻⁴`` in float32, ``tau64`` in float64."""
+    return 1e-4 if dtype == torch.float32 else tau64
+
+
+def _check_tol(tol, fn: str) -> float | None:
+    return None if tol is None else _positive(tol, "tol", fn)
+
+
+def _minimize(cost, derivs, direction, x0: Tensor, *, tol: float | None, tau: float, max_iter: int,
+              line_search: bool, step_size: float, alpha_min: float, second_order_check: bool) -> OptimResult:
     """The loop shared by the three iterative solvers.
+
+    ``tol``: an absolute tolerance on ``‖g‖₂``, or ``None``: ``τ · max(1, ‖g(x₀)‖₂)`` per element.
 
     ``cost(x) -> (*B,)``; ``derivs(x) -> (g (*B, n), aux)``; ``direction(g, aux, active) -> Δx (*B, n)``
     (finite everywhere; only ``active`` rows are used).  ``second_order_check``: ``aux`` is the Hessian.
@@ -278,7 +298,9 @@ def _minimize(cost, derivs, direction, x0: Tensor, *, tol: float, max_iter: int,
             ok = ok & torch.isfinite(H).flatten(-2).all(-1)
         reason = torch.where(active & ~ok, int(Reason.DIVERGED), reason)
         active = active & ok
-        done = active & (gnorm <= tol)
+        if k == 0:
+            tol_b = tau * gnorm.clamp_min(1.0) if tol is None else tol
+        done = active & (gnorm <= tol_b)
         reason = torch.where(done, int(Reason.CONVERGED), reason)
         active = active & ~done
         if k == max_iter or not bool(active.any()):
@@ -345,7 +367,7 @@ def _cost_fn(f, fn: str, x0: Tensor):
 
 
 def gradient_descent(f: Callable[[Tensor], Tensor], x0: Tensor, *, step_size: float = 1.0,
-                     line_search: bool = True, alpha_min: float = 1e-10, tol: float = 1e-6,
+                     line_search: bool = True, alpha_min: float = 1e-10, tol: float | None = None,
                      max_iter: int = 1000, gradient: Callable[[Tensor], Tensor] | None = None) -> OptimResult:
     """Minimize ``c(x) = f(x)`` by gradient descent, ``x_{k+1} = x_k − α g(x_k)`` (seed 004 §3.1).
 
@@ -357,7 +379,8 @@ def gradient_descent(f: Callable[[Tensor], Tensor], x0: Tensor, *, step_size: fl
             decreases, down to ``alpha_min``); ``False``: every step is ``−step_size · g`` (a non-finite cost
             or gradient: ``DIVERGED``).
         alpha_min: smallest ``α`` tried by the line search, in ``(0, step_size]``.
-        tol: ``converged`` where ``‖g(x)‖₂ ≤ tol`` at the returned ``x``.
+        tol: ``converged`` where ``‖g(x)‖₂ ≤ tol`` at the returned ``x``; default ``None``:
+            ``τ · max(1, ‖g(x₀)‖₂)`` per element, ``τ = 10⁻⁶`` (float64) or ``10⁻⁴`` (float32).
         max_iter: at most this many steps per element.
         gradient: optional ``(*B, n) -> (*B, n)``, ``∂c/∂x`` (Eq. 7); default: :mod:`torch.func`.
 
@@ -372,7 +395,7 @@ def gradient_descent(f: Callable[[Tensor], Tensor], x0: Tensor, *, step_size: fl
         raise TypeError(f"{fn}: argument 'line_search' must be a bool, got {type(line_search).__name__}")
     step_size = _positive(step_size, "step_size", fn)
     alpha_min = _positive(alpha_min, "alpha_min", fn, upper=step_size)
-    tol = _positive(tol, "tol", fn)
+    tol = _check_tol(tol, fn)
     max_iter = _check_max_iter(max_iter, fn)
     _cost_fn(f, fn, x0)
     grad = gradient if gradient is not None else _auto_gradient(f)
@@ -385,11 +408,12 @@ def gradient_descent(f: Callable[[Tensor], Tensor], x0: Tensor, *, step_size: fl
     def direction(g, aux, active):
         return -torch.where(torch.isfinite(g), g, 0.0)
 
-    return _minimize(f, derivs, direction, x0, tol=tol, max_iter=max_iter, line_search=line_search,
-                     step_size=step_size, alpha_min=alpha_min, second_order_check=False)
+    return _minimize(f, derivs, direction, x0, tol=tol, tau=_default_tau(x0.dtype, 1e-6), max_iter=max_iter,
+                     line_search=line_search, step_size=step_size, alpha_min=alpha_min,
+                     second_order_check=False)
 
 
-def newton(f: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float = 1e-8, max_iter: int = 100,
+def newton(f: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float | None = None, max_iter: int = 100,
            line_search: bool = True, alpha_min: float = 1e-10, min_curvature: float = 1e-8,
            gradient: Callable[[Tensor], Tensor] | None = None,
            hessian: Callable[[Tensor], Tensor] | None = None) -> OptimResult:
@@ -405,7 +429,8 @@ def newton(f: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float = 1e-8, max_
         f: the cost ``(*B, n) -> (*B,)``, element-wise over the batch.
         x0: ``(*B, n)`` initial estimates.
         tol: ``converged`` where ``‖g(x)‖₂ ≤ tol`` at the returned ``x`` and ``H(x)`` has no eigenvalue below
-            ``−√ε · max(1, max|λ|)`` (else ``NOT_A_MINIMUM``: a saddle or a maximum).
+            ``−√ε · max(1, max|λ|)`` (else ``NOT_A_MINIMUM``: a saddle or a maximum); default ``None``:
+            ``τ · max(1, ‖g(x₀)‖₂)`` per element, ``τ = 10⁻⁸`` (float64) or ``10⁻⁴`` (float32).
         max_iter: at most this many steps per element.
         line_search: ``False``: full Newton steps (``α = 1``).
         alpha_min: smallest ``α`` of the line search, in ``(0, 1]``.
@@ -424,7 +449,7 @@ def newton(f: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float = 1e-8, max_
     x0 = _check_x0(x0, fn)
     if not isinstance(line_search, bool):
         raise TypeError(f"{fn}: argument 'line_search' must be a bool, got {type(line_search).__name__}")
-    tol = _positive(tol, "tol", fn)
+    tol = _check_tol(tol, fn)
     max_iter = _check_max_iter(max_iter, fn)
     alpha_min = _positive(alpha_min, "alpha_min", fn, upper=1.0)
     min_curvature = _positive(min_curvature, "min_curvature", fn)
@@ -451,8 +476,8 @@ def newton(f: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float = 1e-8, max_
         lam = torch.maximum(lam, floor)
         return -(V @ ((V.mT @ gs.unsqueeze(-1)) / lam.unsqueeze(-1))).squeeze(-1)
 
-    return _minimize(f, derivs, direction, x0, tol=tol, max_iter=max_iter, line_search=line_search,
-                     step_size=1.0, alpha_min=alpha_min, second_order_check=True)
+    return _minimize(f, derivs, direction, x0, tol=tol, tau=_default_tau(x0.dtype, 1e-8), max_iter=max_iter,
+                     line_search=line_search, step_size=1.0, alpha_min=alpha_min, second_order_check=True)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -460,7 +485,8 @@ def newton(f: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float = 1e-8, max_
 # --------------------------------------------------------------------------------------------------
 
 
-def gauss_newton(residual: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float = 1e-8, max_iter: int = 100,
+def gauss_newton(residual: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float | None = None,
+                 max_iter: int = 100,
                  jacobian: Callable[[Tensor], Tensor] | None = None, weights: Tensor | None = None,
                  damping: float = 0.0, line_search: bool = True, alpha_min: float = 1e-10) -> OptimResult:
     """Minimize ``c(x) = f(x)ᵀ W f(x)`` by Gauss–Newton (seed 004 §3.3, Eq. 10).
@@ -473,7 +499,8 @@ def gauss_newton(residual: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float
     Args:
         residual: ``f: (*B, n) -> (*B, r)``, element-wise over the batch.
         x0: ``(*B, n)`` initial estimates.
-        tol: ``converged`` where ``‖2 Jᵀ W f‖₂ ≤ tol`` at the returned ``x``.
+        tol: ``converged`` where ``‖2 Jᵀ W f‖₂ ≤ tol`` at the returned ``x``; default ``None``:
+            ``τ · max(1, ‖2 Jᵀ W f‖₂ at x₀)`` per element, ``τ = 10⁻⁸`` (float64) or ``10⁻⁴`` (float32).
         max_iter: at most this many steps per element.
         jacobian: optional ``(*B, n) -> (*B, r, n)``; default: :mod:`torch.func` (``jacrev`` if ``r ≤ n``,
             else ``n`` ``jvp`` passes).
@@ -492,7 +519,7 @@ def gauss_newton(residual: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float
     x0 = _check_x0(x0, fn)
     if not isinstance(line_search, bool):
         raise TypeError(f"{fn}: argument 'line_search' must be a bool, got {type(line_search).__name__}")
-    tol = _positive(tol, "tol", fn)
+    tol = _check_tol(tol, fn)
     max_iter = _check_max_iter(max_iter, fn)
     alpha_min = _positive(alpha_min, "alpha_min", fn, upper=1.0)
     damping = _positive(damping, "damping", fn, allow_zero=True)
@@ -533,8 +560,9 @@ def gauss_newton(residual: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float
         N = torch.where(use[..., None, None], JtWJ + damping * eye, eye)
         return -_spd_solve(N, torch.where(active[..., None], 0.5 * g, 0.0))
 
-    return _minimize(cost, derivs, direction, x0, tol=tol, max_iter=max_iter, line_search=line_search,
-                     step_size=1.0, alpha_min=alpha_min, second_order_check=False)
+    return _minimize(cost, derivs, direction, x0, tol=tol, tau=_default_tau(x0.dtype, 1e-8),
+                     max_iter=max_iter, line_search=line_search, step_size=1.0, alpha_min=alpha_min,
+                     second_order_check=False)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -580,6 +608,46 @@ def _batch_of(fn: str, **shapes: tuple[int, ...]) -> tuple[int, ...]:
         raise ValueError(f"{fn}: batch dims do not broadcast: {desc}") from None
 
 
+def _sqrt0(v: Tensor) -> Tensor:
+    """``√v`` for ``v ≥ 0`` with the gradient ``0`` (not ``inf``) where ``v = 0``; NaN stays NaN."""
+    pos = v > 0
+    return torch.where(pos, torch.sqrt(torch.where(pos, v, torch.ones_like(v))), 0.0 * v)
+
+
+def _weight_factor(W: Tensor) -> tuple[Tensor, Tensor]:
+    """``(Lᵀ (*B, m, m), psd (*B,))`` with ``W = L Lᵀ`` for a symmetric ``W``: Cholesky where it succeeds,
+    else (positive semi-definite, e.g. Eq. 16's zero block) ``Lᵀ = diag(√λ) Vᵀ`` from ``W = V diag(λ) Vᵀ``.
+    ``psd`` is ``False`` where ``W`` has an eigenvalue below ``−m ε max|λ|`` (not PSD) or a non-finite
+    entry; eigenvalues in ``[−m ε max|λ|, m ε max|λ|]`` count as zero."""
+    m = W.shape[-1]
+    finite = torch.isfinite(W).flatten(-2).all(-1)
+    L, info = torch.linalg.cholesky_ex(torch.where(finite[..., None, None], W, 0.0))
+    chol = (info == 0) & finite
+    R, psd = L.mT, chol
+    if not bool(chol.all()):
+        # distinct eigenvalues where unused, so that eigh's backward stays finite there
+        filler = torch.diag_embed(torch.arange(1, m + 1, dtype=W.dtype, device=W.device))
+        semi = ~chol & finite
+        lam, V = torch.linalg.eigh(torch.where(semi[..., None, None], W, filler))
+        floor = m * torch.finfo(W.dtype).eps * lam.abs().amax(-1, keepdim=True)
+        psd = chol | (semi & (lam >= -floor).all(-1))
+        Re = _sqrt0(torch.where(lam > floor, lam, 0.0))[..., :, None] * V.mT
+        R = torch.where(chol[..., None, None], R, Re)
+    return R, psd
+
+
+def _min_norm_solve(M: Tensor, y: Tensor) -> Tensor:
+    """``M† y`` per element (``M (*B, k, n)``, ``y (*B, k)``): the minimum-norm least-squares solution by the
+    SVD (:func:`torch.linalg.pinv`, singular values below ``max(k, n) ε σ_max`` dropped, as
+    ``numpy.linalg.lstsq``; the same on CPU and CUDA, where LAPACK's rank-revealing ``lstsq`` drivers are not
+    available), differentiable where the rank is constant.  NaN for an element with a non-finite entry."""
+    finite = torch.isfinite(M).flatten(-2).all(-1) & torch.isfinite(y).all(-1)
+    rtol = max(M.shape[-2], M.shape[-1]) * torch.finfo(M.dtype).eps
+    P = torch.linalg.pinv(torch.where(finite[..., None, None], M, 0.0), rtol=rtol)
+    x = (P @ torch.where(finite[..., None], y, 0.0).unsqueeze(-1)).squeeze(-1)
+    return torch.where(finite[..., None], x, math.nan)
+
+
 def least_squares(A: Tensor, b: Tensor, ridge: float | Tensor = 0.0, weights: Tensor | None = None) -> Tensor:
     """``x̂ = argmin ‖Ax − b‖²_W + α‖x‖²`` (seed 004 §3.4, Eqs. 12–16), batched and differentiable.
 
@@ -589,10 +657,19 @@ def least_squares(A: Tensor, b: Tensor, ridge: float | Tensor = 0.0, weights: Te
     * ``weights = W``, ``ridge = 0``: ``(Aᵀ W A)† Aᵀ W b`` (Eq. 14; a PSD ``W`` with a zero block is
       Eq. 16).
 
+    The normal matrix ``Aᵀ W A`` (whose condition number is the square of ``A``'s) is never formed: with
+    ``W = L Lᵀ`` (Cholesky; for a singular PSD ``W`` its eigen-decomposition), all three are the
+    minimum-norm least-squares solution of the whitened system stacked with the ridge rows,
+    ``‖[Lᵀ A; √α I] x − [Lᵀ b; 0]‖²``, solved by the SVD (:func:`torch.linalg.pinv` with
+    ``rtol = max(rows, n) ε``, as ``numpy.linalg.lstsq``; also on CUDA).  So a zero ``α`` (a number or an
+    entry of a tensor ``ridge``) gives ``(√W A)† √W b`` — ``A† b`` for a rank-deficient ``A`` — and a
+    tiny ``α`` its limit.
+
     Gradients reach ``A``, ``b``, ``weights`` and a tensor ``ridge`` by autograd through
-    :func:`torch.linalg.pinv` / :func:`torch.linalg.solve_ex` (where the rank is constant, e.g. full).  An
-    element with NaN/inf data, or (``ridge > 0``) a singular normal matrix (``W`` not PSD), gets a NaN ``x̂``
-    without affecting the others.
+    :func:`torch.linalg.pinv` (where the rank is constant, e.g. full; the gradient w.r.t. a ridge entry
+    that is exactly ``0`` is returned as ``0``).  An element with NaN/inf data, or with a ``W`` that is not
+    positive semi-definite (an eigenvalue below ``−m ε max|λ|``), gets a NaN ``x̂`` without affecting the
+    others.
 
     Args:
         A: ``(*B, m, n)``.
@@ -621,28 +698,24 @@ def least_squares(A: Tensor, b: Tensor, ridge: float | Tensor = 0.0, weights: Te
         shapes["ridge"] = tuple(ridge.shape)
         if bool((ridge.detach() < 0).any()):
             raise ValueError(f"{fn}: argument 'ridge' must be >= 0 everywhere")
-    _batch_of(fn, **shapes)
-    n = A.shape[-1]
+    batch = _batch_of(fn, **shapes)
+    m, n = A.shape[-2:]
+    M, y = A, b
+    psd = None
     if weights is not None:
-        weights = 0.5 * (weights + weights.mT)  # the cost sees only the symmetric part
-    if weights is None and not isinstance(ridge, Tensor) and ridge == 0.0:
-        return (_safe_pinv(A, hermitian=False) @ b.unsqueeze(-1)).squeeze(-1)
-    AtW = A.mT if weights is None else A.mT @ weights
-    N = AtW @ A
-    rhs = AtW @ b.unsqueeze(-1)
+        R, psd = _weight_factor(0.5 * (weights + weights.mT))  # the cost sees only the symmetric part
+        M = R @ A
+        y = (R @ b.unsqueeze(-1)).squeeze(-1)
     if isinstance(ridge, Tensor) or ridge > 0.0:
         eye = torch.eye(n, dtype=A.dtype, device=A.device)
-        N = N + (ridge[..., None, None] if isinstance(ridge, Tensor) else ridge) * eye
-        x, info = torch.linalg.solve_ex(N, rhs)
-        return torch.where((info == 0)[..., None, None], x, math.nan).squeeze(-1)
-    return (_safe_pinv(N, hermitian=True) @ rhs).squeeze(-1)
-
-
-def _safe_pinv(M: Tensor, hermitian: bool) -> Tensor:
-    """``M†`` per element; NaN for an element with a non-finite entry (the SVD would stop the whole batch)."""
-    finite = torch.isfinite(M).flatten(-2).all(-1)[..., None, None]
-    P = torch.linalg.pinv(torch.where(finite, M, 0.0), hermitian=hermitian)
-    return torch.where(finite, P, math.nan)
+        s = _sqrt0(ridge)[..., None, None] if isinstance(ridge, Tensor) else math.sqrt(ridge)
+        rows = (s * eye).expand(batch + (n, n))
+        M = torch.cat((M.expand(batch + (m, n)), rows), -2)
+        y = torch.cat((y.expand(batch + (m,)), y.new_zeros(batch + (n,))), -1)
+    x = _min_norm_solve(M, y)
+    if psd is not None:
+        x = torch.where(psd[..., None], x, math.nan)
+    return x.expand(batch + (n,))
 
 
 def constrained_least_squares(A: Tensor, b: Tensor, C: Tensor, d: Tensor,
@@ -654,9 +727,11 @@ def constrained_least_squares(A: Tensor, b: Tensor, C: Tensor, d: Tensor,
         [  C      0 ] [λ] = [  d   ]
 
     (the multiplier scaled as in the seed: the cost's factor 2 is absorbed into ``λ``).  Solved by LU
-    (:func:`torch.linalg.solve_ex`); an element whose KKT matrix is singular (``C`` without full row rank, or
-    ``A`` not full rank on the null space of ``C``) gets NaN in its ``x`` and ``λ`` without affecting the
-    others.  Gradients reach ``A``, ``b``, ``C``, ``d`` and ``weights`` by autograd.
+    (:func:`torch.linalg.solve_ex`).  An element whose KKT matrix is singular — ``C`` without full row rank,
+    or ``√W A`` not of full column rank on the null space of ``C``, each tested numerically (a singular
+    value below ``max(rows, n) ε σ_max``, so also a ``C`` that is singular only up to rounding) — or whose
+    ``W`` is not positive semi-definite, or with NaN/inf data, gets NaN in its ``x`` and ``λ`` without
+    affecting the others.  Gradients reach ``A``, ``b``, ``C``, ``d`` and ``weights`` by autograd.
 
     Args:
         A: ``(*B, m, n)``; b: ``(*B, m)``; C: ``(*B, p, n)`` with ``p ≤ n``; d: ``(*B, p)``.
@@ -695,5 +770,32 @@ def constrained_least_squares(A: Tensor, b: Tensor, C: Tensor, d: Tensor,
     K = torch.cat((torch.cat((N, Cb.mT), -1), torch.cat((Cb, zero), -1)), -2)
     rhs = torch.cat(((AtW @ b.unsqueeze(-1)).squeeze(-1).expand(batch + (n,)), d.expand(batch + (p,))), -1)
     sol, info = torch.linalg.solve_ex(K, rhs)
-    sol = torch.where((info == 0)[..., None], sol, math.nan)
+    # LU is backward stable, so a numerically singular KKT matrix gives a finite, meaningless answer: test
+    # its two conditions on the data instead (numerical rank by the SVD, tolerance max(rows, n) ε σ_max)
+    well_posed = (info == 0) & _kkt_well_posed(A, C, weights)
+    sol = torch.where(well_posed[..., None], sol, math.nan)
     return ConstrainedLSResult(x=sol[..., :n], multiplier=sol[..., n:])
+
+
+def _kkt_well_posed(A: Tensor, C: Tensor, weights: Tensor | None) -> Tensor:
+    """``(*B,)``: ``C (*B, p, n)`` has full row rank and ``√W A`` full column rank on ``null(C)``
+    (numerically: no singular value below ``max(rows, n) ε σ_max``); False for non-finite data or a ``W``
+    that is not PSD.  A mask only: computed without gradients."""
+    with torch.no_grad():
+        p, n = C.shape[-2:]
+        eps = torch.finfo(C.dtype).eps
+        finite_c = torch.isfinite(C).flatten(-2).all(-1)
+        _, sC, Vh = torch.linalg.svd(torch.where(finite_c[..., None, None], C, 0.0))
+        ok = finite_c & (sC[..., -1] > max(p, n) * eps * sC[..., 0])
+        if p == n:
+            return ok
+        M, psd = A, None
+        if weights is not None:
+            R, psd = _weight_factor(weights)
+            M = R @ A
+        finite_m = torch.isfinite(M).flatten(-2).all(-1)
+        M = torch.where(finite_m[..., None, None], M, 0.0)
+        sM = torch.linalg.svdvals(M)[..., :1]  # σ_max(√W A)
+        sZ = torch.linalg.svdvals(M @ Vh[..., p:, :].mT)  # √W A on an orthonormal basis of null(C)
+        ok = ok & finite_m & (sZ[..., -1] > max(M.shape[-2], n) * eps * sM[..., 0])
+        return ok if psd is None else ok & psd

@@ -437,3 +437,26 @@ def test_hedac_1d_covers_target():
     assert r.residual_norm[-1] < 0.5 * r.residual_norm[0]
     near = ((r.x[..., 0, None] - torch.tensor([0.25, 0.7], dtype=F64)).abs() < 0.13).to(F64).mean((0, 1))
     assert (near > 0.3).all()                                            # both components visited
+
+
+def test_zero_agents_and_too_few_substeps_raise():
+    """No agents would make every average a silent NaN; too few heat sub-steps name ``n_substeps``."""
+    F = torch.float64
+    none = torch.zeros(1, 0, 2, dtype=F)
+    w_hat = torch.zeros(25, dtype=F)
+    with pytest.raises(ValueError, match="'x0'.*N >= 1"):
+        E.smc_rollout(none, w_hat, n_steps=3, dt=0.01, u_max=1.0, n_basis=5, length=1.0)
+    with pytest.raises(ValueError, match="'x0'.*N >= 1"):
+        E.smc_plan(none, torch.zeros(1, 3, 0, 2, dtype=F), w_hat, dt=0.01, n_basis=5, length=1.0)
+    with pytest.raises(ValueError, match="'traj'.*N >= 1"):
+        E.running_coefficients(torch.zeros(3, 0, 2, dtype=F), n_basis=5, length=1.0)
+    grid = E.HeatGrid(2, 20, 1.0)
+    target = torch.ones(20, 20, dtype=F)
+    with pytest.raises(ValueError, match="'x0'.*N >= 1"):
+        E.hedac_rollout(none, target, grid, n_steps=2, alpha=0.01, dt=0.05, u_max=1.0, shape=10.0)
+    state = E.hedac_init(torch.full((1, 1, 2), 0.5, dtype=F), grid)
+    with pytest.raises(ValueError, match="'n_substeps'"):
+        E.hedac_step(state, target, grid, alpha=1.0, dt=1.0, u_max=1.0, shape=10.0, n_substeps=1)
+    # the smallest stable count passes: dt (2 D α / h² + β) = 1 · 4 · 400 = 1600 sub-steps of 1/1600
+    step = E.hedac_step(state, target, grid, alpha=1.0, dt=1.0, u_max=1.0, shape=10.0, n_substeps=1600)
+    assert torch.isfinite(step.state.heat).all()

@@ -7,6 +7,8 @@ constraints, and gradcheck in float64 for the differentiable closed forms.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import scipy.linalg
@@ -583,3 +585,132 @@ def _z(*shape):
 def test_bad_input(call, exc, word):
     with pytest.raises(exc, match=word):
         call()
+
+
+# --------------------------------------------------------------------------------------------------
+# regressions: conditioning, ridge zeros, rank-deficient constraints, float32 tolerances
+# --------------------------------------------------------------------------------------------------
+
+
+def _mp_lstsq(A: torch.Tensor, b: torch.Tensor) -> np.ndarray:
+    """The exact least-squares solution of the stored float64 data (full column rank), in 60 digits."""
+    import mpmath
+
+    with mpmath.workdps(60):
+        Am, bm = mpmath.matrix(A.tolist()), mpmath.matrix(b.tolist())
+        x = mpmath.lu_solve(Am.T * Am, Am.T * bm)
+        return np.array([float(v) for v in x])
+
+
+def test_weighted_least_squares_does_not_square_the_condition_number():
+    A = torch.tensor([[1.0, 0.0], [0.0, 1e-8], [0.0, 0.0]], dtype=F64)
+    b = torch.tensor([1.0, 1e-8, 0.0], dtype=F64)
+    one = torch.ones(2, dtype=F64)
+    torch.testing.assert_close(least_squares(A, b), one, atol=1e-12, rtol=0)
+    torch.testing.assert_close(least_squares(A, b, weights=torch.eye(3, dtype=F64)), one, atol=1e-12, rtol=0)
+    torch.testing.assert_close(least_squares(A, b, ridge=torch.zeros((), dtype=F64)), one, atol=1e-12, rtol=0)
+    # cond(A) = 1e6 .. 1e10 with a diagonal W: as accurate as numpy's lstsq of √W A (vs a 60-digit reference)
+    g = _gen(90)
+    U, _ = torch.linalg.qr(torch.randn(8, 8, generator=g, dtype=F64))
+    V, _ = torch.linalg.qr(torch.randn(4, 4, generator=g, dtype=F64))
+    for cond in (1e6, 1e8, 1e10):
+        s = torch.logspace(0, -math.log10(cond), 4, dtype=F64)
+        A = U[:, :4] @ torch.diag(s) @ V.T
+        b = A @ torch.randn(4, generator=g, dtype=F64) + 1e-3 * torch.randn(8, generator=g, dtype=F64)
+        w = 0.5 + torch.rand(8, generator=g, dtype=F64)
+        Aw, bw = w.sqrt()[:, None] * A, w.sqrt() * b
+        ref = _mp_lstsq(Aw, bw)
+        err_np = np.abs(np.linalg.lstsq(Aw.numpy(), bw.numpy(), rcond=None)[0] - ref).max()
+        for x in (least_squares(A, b, weights=torch.diag(w)),
+                  least_squares(Aw, bw, weights=torch.eye(8, dtype=F64))):
+            err = np.abs(x.numpy() - ref).max()
+            assert err <= max(1e-8, 10 * err_np) * np.abs(ref).max(), (cond, err, err_np)
+
+
+def test_tensor_ridge_with_zeros_is_the_pseudoinverse():
+    A = torch.tensor([[1.0, 1.0], [2.0, 2.0], [3.0, 3.0]], dtype=F64)  # rank 1
+    b = torch.tensor([1.0, 2.0, 3.5], dtype=F64)
+    alpha = torch.tensor([0.0, 1e-300, 0.5, float("nan")], dtype=F64)
+    x = least_squares(A, b, ridge=alpha)
+    ref0 = np.linalg.lstsq(A.numpy(), b.numpy(), rcond=None)[0]
+    ref_r = np.linalg.lstsq(np.vstack([A.numpy(), np.sqrt(0.5) * np.eye(2)]), np.r_[b.numpy(), 0, 0],
+                            rcond=None)[0]
+    np.testing.assert_allclose(x[0].numpy(), ref0, atol=1e-12)
+    np.testing.assert_allclose(x[1].numpy(), ref0, atol=1e-12)
+    np.testing.assert_allclose(x[2].numpy(), ref_r, atol=1e-12)
+    assert torch.isnan(x[3]).all()
+    torch.testing.assert_close(least_squares(A, b, ridge=0.0), x[0])
+    # the same with a singular PSD weight (Eq. 16) and a zero ridge entry
+    W = torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=F64))
+    xw = least_squares(A, b, ridge=alpha[:3], weights=W)
+    np.testing.assert_allclose(xw[0].numpy(), np.linalg.lstsq(A[:2].numpy(), b[:2].numpy(), rcond=None)[0],
+                               atol=1e-12)
+    # a weight that is not PSD gives NaN for its element only
+    Wb = torch.stack([torch.eye(3, dtype=F64), -torch.eye(3, dtype=F64)])
+    xb = least_squares(A, b, ridge=0.1, weights=Wb)
+    assert torch.isfinite(xb[0]).all() and torch.isnan(xb[1]).all()
+
+
+def test_constrained_nearly_rank_deficient_constraint_is_nan():
+    A, b, C, d = _cls_data(B=3, m=6, n=4, p=2, seed=98)
+    good = constrained_least_squares(A, b, C, d)
+    Cb, db = C.clone(), d.clone()
+    Cb[1] = torch.tensor([[0.1, 0.2, 0.3, 0.4], [0.3, 0.6, 0.9, 1.2]], dtype=F64)  # rank 1 up to rounding
+    db[1] = torch.tensor([1.0, 2.9], dtype=F64)  # inconsistent: no x satisfies Cx = d
+    res = constrained_least_squares(A, b, Cb, db)
+    assert torch.isnan(res.x[1]).all() and torch.isnan(res.multiplier[1]).all()
+    torch.testing.assert_close(res.x[[0, 2]], good.x[[0, 2]])
+    torch.testing.assert_close(res.multiplier[[0, 2]], good.multiplier[[0, 2]])
+    # A singular on the null space of C (up to rounding): the minimizer is not unique
+    A0 = (0.1 * torch.arange(1.0, 7.0, dtype=F64))[:, None] * torch.tensor([0.1, 0.3, 0.7, 0.2], dtype=F64)
+    r0 = constrained_least_squares(A0, b[0], C[0, :1], d[0, :1])
+    assert torch.isnan(r0.x).all()
+
+
+def test_gauss_newton_float32_unbatched_tall_residual():
+    def res(x):
+        return torch.stack([x[..., 0] - 2.0, x[..., 1] - 1.0, x[..., 0] * x[..., 1] - 2.0], -1)
+
+    r32 = gauss_newton(res, torch.ones(2))
+    r64 = gauss_newton(res, torch.ones(2, dtype=F64))
+    assert r32.x.dtype == torch.float32 and bool(r32.converged) and bool(r64.converged)
+    torch.testing.assert_close(r32.x.double(), r64.x, atol=1e-5, rtol=0)
+    ref = scipy.optimize.least_squares(lambda v: res(torch.tensor(v)).numpy(), np.ones(2), xtol=1e-15,
+                                       ftol=1e-15, gtol=1e-15).x
+    np.testing.assert_allclose(r64.x.numpy(), ref, atol=1e-8)
+
+
+def test_default_tolerance_follows_dtype():
+    q = torch.tensor([3.0, -2.0])
+    h = torch.tensor([1.0, 10.0])
+
+    def quad(x):  # scaled so that float32 cannot resolve ‖g‖ ≤ 1e-8 near the minimizer
+        return 1e3 * (((x - q.to(x.dtype)) ** 2) * h.to(x.dtype)).sum(-1) + torch.exp(x.sum(-1) / 8)
+
+    def res(x):
+        return torch.stack([x[..., 0] - 3.0, 10 * (x[..., 1] - x[..., 0] ** 2 / 9), 0.1 * x[..., 0]], -1)
+
+    def res_cost(x):
+        return (res(x) ** 2).sum(-1)
+
+    x0 = torch.tensor([[0.0, 0.0], [1.0, 2.0]])
+    for dtype in (torch.float32, F64):
+        for name, r, c, tau in (
+                ("newton", newton(quad, x0.to(dtype)), quad, 1e-8),
+                ("gradient_descent",
+                 gradient_descent(quad, x0.to(dtype), step_size=1e-3, max_iter=5000), quad, 1e-6),
+                ("gauss_newton", gauss_newton(res, x0.to(dtype)), res_cost, 1e-8)):
+            tau = 1e-4 if dtype == torch.float32 else tau
+            assert r.converged.all(), (name, dtype, r.reason_names(), r.grad_norm)
+            # the documented rule: ‖g(x)‖ ≤ τ max(1, ‖g(x0)‖), g by autograd in float64
+            x0d = x0.clone().requires_grad_()
+            g0 = torch.autograd.grad(c(x0d).sum(), x0d)[0].norm(dim=-1)
+            bound = tau * g0.clamp_min(1.0)
+            assert (r.grad_norm.double() <= bound).all(), (name, dtype, r.grad_norm, bound)
+            ref = newton(c, x0.double(), tol=1e-12)
+            assert ref.converged.all()
+            # ‖x − x*‖ ≤ ‖g(x)‖ / λ_min(H) (λ_min ≥ 2e3 for quad, ≥ 0.5 for the residual near x*), with slack
+            lam_min = 2e3 if c is quad else 0.5
+            err = (r.x.double() - ref.x).norm(dim=-1)
+            slack = 1e-5 if dtype == torch.float32 else 1e-12
+            assert (err <= 2 * bound / lam_min + slack).all(), (name, err)
