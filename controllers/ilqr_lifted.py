@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from controllers.costs import cost_derivatives
+from controllers.costs import ResidualCost, cost_derivatives
 from controllers.dynamics import LinearDynamics, rollout, trajectory_jacobians
 from controllers.ilqr import ILQRProblem
 from controllers.lifted import transfer_matrices
@@ -110,60 +110,100 @@ def _check(problem, Psi, x0_weight, w_init, max_iter, tol, line_search_steps, mu
                          f"{line_search_steps!r}")
 
 
-class _Model:
-    """Cost, gradient and Gauss-Newton Hessian in ``z = [x0; w]`` at one point (all ``(*B, ...)``)."""
+def _rmul(v: Tensor, M: Tensor) -> Tensor:
+    """``M v`` for vectors ``v (..., k)`` and ``M (..., r, k)``, as ``v Mᵀ``: with a matrix shared by the
+    batch this is one matrix product over the folded batch (``M @ v`` would copy ``M`` once per element)."""
+    if M.dim() == 2:
+        return v @ M.mT
+    return (M @ v.unsqueeze(-1)).squeeze(-1)
 
-    def __init__(self, problem: ILQRProblem, Psi: Tensor, wbar: Tensor | None, xbar: Tensor, bs):
+
+class _Model:
+    """Cost, gradient and Gauss-Newton Hessian in ``z = [x0; w]`` at one point (all ``(*B, ...)``).
+
+    Matrices shared by the batch (``Ψ``, the transfer matrices of time-invariant linear dynamics) are kept
+    without batch dims and applied by folded matrix products."""
+
+    def __init__(self, problem: ILQRProblem, Psi: Tensor, wbar: Tensor | None, xbar: Tensor, bs,
+                 identity: bool = False):
         self.p, self.Psi, self.wbar, self.xbar, self.bs = problem, Psi, wbar, xbar, bs
-        K = Psi.shape[-1]
-        T, m = problem.T, problem.m
-        self.Psi_t = Psi.reshape(*Psi.shape[:-2], T, m, K).expand(*bs, T, m, K)
+        T, _n, m, K = problem.T, problem.n, problem.m, Psi.shape[-1]
+        self.Psi_t = Psi.reshape(*Psi.shape[:-2], T, m, K)
+        self.identity = identity  # Ψ = I: Ψᵀ H_uu Ψ is H_uu's block diagonal itself
+        # a ResidualCost's state terms vanish where its precision Q_t is zero (between via points): the
+        # steps with a nonzero Q_t, read once per solve, are the only ones S_tᵀ H_xx,t S_t is summed over
+        self.active = None
+        Q = problem.cost.Q if isinstance(problem.cost, ResidualCost) else None
+        if Q is not None and Q.dim() >= 3 and Q.shape[-3] == T + 1:
+            self.active = Q.movedim(-3, 0).reshape(T + 1, -1).ne(0).any(1).nonzero().squeeze(-1)
         d = problem.dynamics
         # linear dynamics: the transfer matrices are constant, built once; a rollout is then one product
-        self.linear = (transfer_matrices(d.A, d.B, d.c, problem.T) if isinstance(d, LinearDynamics) else None)
-
-    def rollout(self, x0: Tensor, u: Tensor) -> Tensor:
-        if self.linear is None:
-            return rollout(self.p.dynamics, x0, u)
-        Sx, Su, sc = self.linear
-        T, n, m = self.p.T, self.p.n, self.p.m
-        x = (Sx @ x0.unsqueeze(-1) + Su @ u.reshape(*u.shape[:-2], T * m, 1)).squeeze(-1)
-        if sc is not None:
-            x = x + sc
-        return x.reshape(*x.shape[:-1], T + 1, n)
-
-    def controls(self, w: Tensor) -> Tensor:
-        p = self.p
-        return (self.Psi @ w.unsqueeze(-1)).squeeze(-1).reshape(*w.shape[:-1], p.T, p.m)
+        self.linear = None
+        if isinstance(d, LinearDynamics):
+            Sx, Su, sc = transfer_matrices(d.A, d.B, d.c, T)
+            SuPsi = Su @ Psi
+            S = SuPsi
+            if wbar is not None:
+                S = torch.cat([Sx.expand(*SuPsi.shape[:-2], *Sx.shape[-2:]), SuPsi], -1)
+            self.linear = (Sx, SuPsi, sc, S)
 
     def cost(self, x0: Tensor, w: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        u = self.controls(w)
-        x = self.rollout(x0, u)
-        c = self.p.cost.evaluate(x, u)
+        p = self.p
+        T, n, m = p.T, p.n, p.m
+        u = _rmul(w, self.Psi).reshape(*w.shape[:-1], T, m)
+        if self.linear is None:
+            x = rollout(p.dynamics, x0, u)
+        else:
+            Sx, SuPsi, sc, _ = self.linear
+            xf = _rmul(x0, Sx) + _rmul(w, SuPsi)
+            if sc is not None:
+                xf = xf + sc
+            x = xf.reshape(*xf.shape[:-1], T + 1, n)
+        c = p.cost.evaluate(x, u)
         if self.wbar is not None:
             c = c + (self.wbar * (x0 - self.xbar) ** 2).sum(-1)
         return c, x, u
 
+    def _jacobian(self, x: Tensor, u: Tensor) -> Tensor:
+        """``S = [S_x, S_u Ψ]`` (or ``S_u Ψ``) ``(..., (T+1) n, K')`` along the trajectory."""
+        if self.linear is not None:
+            return self.linear[3]
+        p = self.p
+        A, B = trajectory_jacobians(p.dynamics, x[..., :-1, :], u)
+        Sx, Su = transfer_matrices(A.movedim(0, -3), B.movedim(0, -3), None, p.T)[:2]
+        SuPsi = Su @ self.Psi
+        if self.wbar is None:
+            return SuPsi
+        return torch.cat([Sx.expand(*SuPsi.shape[:-2], *Sx.shape[-2:]), SuPsi], -1)
+
     def derivatives(self, x0: Tensor, w: Tensor, x: Tensor, u: Tensor):
         p, bs = self.p, self.bs
         T, n, m = p.T, p.n, p.m
-        if self.linear is not None:
-            Sx, Su = self.linear[:2]
-        else:
-            A, B = trajectory_jacobians(p.dynamics, x[..., :-1, :], u)
-            Sx, Su = transfer_matrices(A.movedim(0, -3), B.movedim(0, -3), None, T)[:2]
-        Sx, Su = Sx.expand(*bs, *Sx.shape[-2:]), Su.expand(*bs, *Su.shape[-2:])
+        S = self._jacobian(x, u)
+        Kz = S.shape[-1]
+        Sk = S.reshape(*S.shape[:-2], T + 1, n, Kz)
         gx, gu, Hxx, Hux, Huu = cost_derivatives(p.cost, x, u)
-        gx, gu = gx.expand(*bs, T + 1, n), gu.expand(*bs, T, m)
-        Hxx, Huu = Hxx.expand(*bs, T + 1, n, n), Huu.expand(*bs, T, m, m)
-        Suw = Su @ self.Psi  # (*B, (T+1) n, K)
-        S = torch.cat([Sx, Suw], -1) if self.wbar is not None else Suw
-        Sk = S.reshape(*bs, T + 1, n, S.shape[-1])
-        # Sᵀ H_xx S with the block-diagonal H_xx
-        H = torch.einsum("...tik,...til->...kl", Sk, Hxx @ Sk)
-        Huu_Psi = torch.einsum("...tab,...tbk->...tak", Huu, self.Psi_t)
-        Hw = self.Psi.mT @ Huu_Psi.reshape(*bs, T * m, self.Psi.shape[-1])
-        guw = (self.Psi.mT @ gu.reshape(*bs, T * m, 1)).squeeze(-1)
+        Ska, Hxa, gxa = Sk, Hxx, gx
+        if self.active is not None and Hux is None:
+            a = self.active
+            Ska, gxa = Sk[..., a, :, :], gx[..., a, :]
+            Hxa = Hxx[..., a, :, :] if Hxx.shape[-3] == T + 1 else Hxx
+        # Sᵀ H_xx S with the block-diagonal H_xx, and Ψᵀ H_uu Ψ with the block-diagonal H_uu
+        H = torch.einsum("...tik,...til->...kl", Ska, torch.einsum("...tij,...tjl->...til", Hxa, Ska))
+        gx_z = torch.einsum("...tik,...ti->...k", Ska, gxa)
+        if self.identity:
+            Huu = Huu.expand(*Huu.shape[:-3], T, m, m)
+            Hb = Huu.new_zeros(*Huu.shape[:-3], T, m, T, m)
+            idx = torch.arange(T, device=Huu.device)
+            Hb[..., idx, :, idx, :] = Huu
+            Hw = Hb.reshape(*Huu.shape[:-3], T * m, T * m)
+            guw = gu.reshape(*gu.shape[:-2], T * m)
+        else:
+            Hw = torch.einsum("...tak,...tal->...kl", self.Psi_t,
+                              torch.einsum("...tab,...tbl->...tal", Huu, self.Psi_t))
+            guw = _rmul(gu.reshape(*gu.shape[:-2], T * m), self.Psi.mT)
+        H, Hw, guw, gx_z = H.expand(*bs, Kz, Kz), Hw.expand(*bs, *Hw.shape[-2:]), guw.expand(*bs, -1), \
+            gx_z.expand(*bs, Kz)
         nx = 0
         if self.wbar is not None:
             nx = n
@@ -173,13 +213,11 @@ class _Model:
             guw = torch.cat([2 * self.wbar * (x0 - self.xbar), guw], -1)
         H = H + Hw
         if Hux is not None:  # Σ_t Δu_tᵀ H_ux,t Δx_t with Δu = Ψ_t Δw, Δx_t = S_t Δz
-            Hux = Hux.expand(*bs, T, m, n)
             Psi_t = self.Psi_t
             if nx:
-                Psi_t = torch.cat([Psi_t.new_zeros(*bs, T, m, nx), Psi_t], -1)
+                Psi_t = torch.cat([Psi_t.new_zeros(*Psi_t.shape[:-1], nx), Psi_t], -1)
             C = torch.einsum("...tak,...tai,...til->...kl", Psi_t, Hux, Sk[..., :T, :, :])
             H = H + C + C.mT
-        gx_z = (S.mT @ gx.reshape(*bs, (T + 1) * n, 1)).squeeze(-1)
         H = 0.5 * (H + H.mT)
         z = torch.cat([x0.expand(*bs, n), w], -1) if nx else w
         # per component, as the backward error of the linear system H z = -(terms): |g_i| against
@@ -219,7 +257,8 @@ def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: T
     T, n, m = problem.T, problem.n, problem.m
     dtype, device = problem.dtype, problem.device
     kw = dict(dtype=dtype, device=device)
-    if Psi is None:
+    identity = Psi is None
+    if identity:
         Psi = torch.eye(T * m, **kw)
     try:
         bs = torch.broadcast_shapes(problem.batch_shape, Psi.shape[:-2],
@@ -238,8 +277,9 @@ def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: T
     if w_init is not None:
         bad = bad | ~torch.isfinite(w_init).all(-1).expand(bs)
     xbar = torch.where(bad[..., None], torch.zeros((), **kw), xbar)
-    Psi = torch.where(bad[..., None, None], torch.zeros((), **kw), Psi.expand(*bs, T * m, K))
-    model = _Model(problem, Psi, None if x0_weight is None else x0_weight.to(**kw), xbar, bs)
+    if Psi.dim() > 2:  # a batched Ψ: zero the failed elements' (a shared one stays unbatched)
+        Psi = torch.where(bad[..., None, None], torch.zeros((), **kw), Psi)
+    model = _Model(problem, Psi, None if x0_weight is None else x0_weight.to(**kw), xbar, bs, identity)
     w = torch.zeros(*bs, K, **kw) if w_init is None else w_init.to(**kw).expand(*bs, K).clone()
     w = torch.where(bad[..., None], torch.zeros((), **kw), w)
     x0 = xbar.clone()

@@ -52,6 +52,9 @@ def transfer_matrices(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None =
     n, m = A.shape[-1], B.shape[-1]
     bs = broadcast_shapes(A.shape[:-3], B.shape[:-3], *([] if c is None else [c.shape[:-2]]))
     dt, dev = A.dtype, A.device
+    if A.shape[-3] == 1 and B.shape[-3] == 1 and (c is None or c.shape[-2] == 1):
+        return _transfer_time_invariant(A[..., 0, :, :], B[..., 0, :, :], None if c is None else c[..., 0, :],
+                                        T, bs)
     At = lambda t: A[..., t if A.shape[-3] > 1 else 0, :, :]
     Bt = lambda t: B[..., t if B.shape[-3] > 1 else 0, :, :]
     rows_x = [torch.eye(n, dtype=dt, device=dev).expand(*bs, n, n)]
@@ -69,6 +72,31 @@ def transfer_matrices(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None =
             rows_c.append((a @ rows_c[-1].unsqueeze(-1)).squeeze(-1) + ct)
     Sx = torch.cat(rows_x, -2)
     sc = None if rows_c is None else torch.cat(rows_c, -1)
+    return Sx, Su, sc
+
+
+def _transfer_time_invariant(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None, T: int, bs
+                              ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """:func:`transfer_matrices` of constant ``A (*B, n, n)``, ``B (*B, n, m)``, ``c (*B, n)``: the powers
+    ``A^k`` (``k = 0..T``) by doubling (``log₂ T`` products), then block ``(t, s)`` of ``S_u`` is
+    ``A^{t-1-s} B`` (a block-Toeplitz gather) and ``s_c,t = Σ_{k<t} A^k c``."""
+    n, m = A.shape[-1], B.shape[-1]
+    P = torch.eye(n, dtype=A.dtype, device=A.device).expand(*A.shape[:-2], 1, n, n)
+    Ak = A.unsqueeze(-3)  # A^(2^j)
+    while P.shape[-3] < T + 1:
+        P = torch.cat([P, Ak @ P], -3)
+        Ak = Ak @ Ak
+    P = P[..., :T + 1, :, :].expand(*bs, T + 1, n, n)
+    Sx = P.reshape(*bs, (T + 1) * n, n)
+    G = P[..., :T, :, :] @ B.unsqueeze(-3)  # A^k B, k = 0..T-1
+    t = torch.arange(T + 1, device=A.device)[:, None]
+    s = torch.arange(T, device=A.device)[None, :]
+    blocks = G[..., (t - 1 - s).clamp_min(0), :, :] * (s < t).to(A.dtype)[:, :, None, None]
+    Su = blocks.movedim(-3, -2).reshape(*bs, (T + 1) * n, T * m)
+    sc = None
+    if c is not None:
+        Pc = (P[..., :T, :, :] @ c.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)  # A^k c
+        sc = torch.cat([torch.zeros_like(Pc[..., :1, :]), Pc.cumsum(-2)], -2).reshape(*bs, (T + 1) * n)
     return Sx, Su, sc
 
 

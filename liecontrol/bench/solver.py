@@ -18,9 +18,12 @@ changing this file:
 * ``mpc_head_fwd_bwd``: ``MPCActorCriticPolicy.evaluate_actions`` + ``backward`` (``learning.mpc_policy``,
   what a PPO update does) at B = 64 and 1024 on the pendulum and the cart-pole (``task`` key); anchor:
   SB3's ``ActorCriticPolicy`` (``MlpPolicy``, default architecture) doing the same.
-* ``cookbook_manipulator``: ``ilqr`` (recursive and batch) on the cookbook manipulator (seed 004 §9.1, one
+* ``cookbook_manipulator``: ``ilqr`` (recursive and batch) and ``ilqr_lifted`` (Algorithm 4 with the
+  transfer matrices of the linear dynamics built once) on the cookbook manipulator (seed 004 §9.1, one
   problem, :func:`cookbook_problem`); anchor: the cookbook's batch iLQR (§8.1, Eq. 108) in plain numpy
-  (``_cookbook_anchor.py``) for as many iterations as ours took; both costs are printed.
+  (``_cookbook_anchor.py``) for as many iterations as each took; both costs are printed.  Then a batch
+  of 64 starts by the recursive and the lifted solver, with ``per_one`` = its time over the same solver's
+  time on one problem (the script solves one problem at a time: 64 of them cost 64 times one).
 
 Records (``--json PATH``): ``{"workload", "batch", "dtype", "device", "ours_ms", "anchor", "anchor_ms",
 "ratio"}`` with ``ratio = anchor_ms / ours_ms`` (above 1: ours is faster), ``anchor``/``anchor_ms``/``ratio``
@@ -82,12 +85,13 @@ class Sizes:
     head_batches: tuple[int, ...] = (64, 1024)
     repeats: int = 5
     swing_repeats: int = 1  # a batch of 64 swing-ups takes seconds
+    cookbook_batch: int = 64
 
 
 DEFAULT_SIZES = Sizes()
 QUICK_SIZES = Sizes(quad_batches=(1, 4), pend_steps=3, car_batch=2, car_steps=1,
                     car_horizon=8, swing_batch=2, swing_horizon=10, swing_max_iter=5, head_batches=(4,),
-                    repeats=1)
+                    repeats=1, cookbook_batch=4)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -459,19 +463,43 @@ def cookbook_problem(dtype: torch.dtype = torch.float64, device=None):
     return ILQRProblem(LinearDynamics(eye, c["dt"] * eye), cost, torch.tensor(c["x0"], **kw), T)
 
 
+def _cookbook_starts(prob, batch: int, seed: int = 0):
+    """The cookbook problem from ``batch`` starts: the script's own and perturbations of it (±0.2 rad)."""
+    from controllers.ilqr import ILQRProblem
+
+    g = torch.Generator().manual_seed(seed)
+    d = 0.2 * (2 * torch.rand(batch, prob.n, generator=g, dtype=torch.float64) - 1)
+    d[0] = 0
+    x0 = prob.x0 + d.to(dtype=prob.x0.dtype, device=prob.x0.device)
+    return ILQRProblem(prob.dynamics, prob.cost, x0, prob.T)
+
+
+def _cookbook_anchor(ctx: _Ctx, iters: int) -> tuple[dict, str | None]:
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / "cookbook.npz"
+        np.savez(f, **{k: np.asarray(v) for k, v in COOKBOOK.items()}, Q=np.eye(3), iterations=iters)
+        return _subprocess("_cookbook_anchor.py", [str(f), "--repeats", str(ctx.reps())], ctx.threads)
+
+
 def _cookbook(ctx: _Ctx) -> list[dict]:
+    """One problem by ``ilqr`` (recursive, batch) and ``ilqr_lifted`` against the numpy script at the same
+    iteration count, then a batch of 64 starts (no anchor: the script solves one problem; ``per_one`` is the
+    batch's time over the same solver's time on one)."""
     from controllers.ilqr import ilqr
+    from controllers.ilqr_lifted import ilqr_lifted
 
     prob = cookbook_problem(ctx.dtype, ctx.device)
-    out = []
-    for method in ("recursive", "batch"):
-        sol = ilqr(prob, method=method, grad="none", options=ctx.options())
+    solvers = {
+        "recursive": lambda pr: ilqr(pr, method="recursive", grad="none", options=ctx.options()),
+        "batch": lambda pr: ilqr(pr, method="batch", grad="none", options=ctx.options()),
+        "lifted": lambda pr: ilqr_lifted(pr),
+    }
+    out, one = [], {}
+    for method, solve in solvers.items():
+        sol = solve(prob)
         iters = int(sol.status.iterations)
-        ms = ctx.time(lambda method=method: ilqr(prob, method=method, grad="none", options=ctx.options()))
-        with tempfile.TemporaryDirectory() as tmp:
-            f = Path(tmp) / "cookbook.npz"
-            np.savez(f, **{k: np.asarray(v) for k, v in COOKBOOK.items()}, Q=np.eye(3), iterations=iters)
-            r, err = _subprocess("_cookbook_anchor.py", [str(f), "--repeats", str(ctx.reps())], ctx.threads)
+        ms = one[method] = ctx.time(lambda solve=solve: solve(prob))
+        r, err = _cookbook_anchor(ctx, iters)
         extra = {"method": method, "iterations": iters, "ours_cost": float(sol.cost),
                  "status": sol.status.reason_names()[0]}
         if err is None:
@@ -480,6 +508,14 @@ def _cookbook(ctx: _Ctx) -> list[dict]:
         out.append(_record(ctx, "cookbook_manipulator", f"manipulator {method}", 1, ms,
                            "numpy batch iLQR (cookbook §8.1/§9.1)", r.get("ms") if err is None else None,
                            None if err is None else f"numpy anchor failed: {err}", **extra))
+    batch = _cookbook_starts(prob, ctx.sizes.cookbook_batch)
+    for method in ("recursive", "lifted"):
+        sol = solvers[method](batch)
+        ms = ctx.time(lambda method=method: solvers[method](batch))
+        out.append(_record(ctx, "cookbook_manipulator", f"manipulator {method}", batch.x0.shape[0], ms,
+                           method=method, per_one=ms / one[method],
+                           iterations=int(sol.status.iterations.max()),
+                           converged=int(sol.status.converged.sum())))
     return out
 
 

@@ -258,3 +258,17 @@ def test_full_matrices_equal_to_the_blocks_give_the_block_solution():
         sol = lifted.solve_lifted(p, **kw)
         torch.testing.assert_close(sol.u, ref.u, atol=1e-9, rtol=0)
         torch.testing.assert_close(sol.cost, ref.cost, atol=1e-9, rtol=1e-12)
+
+
+@pytest.mark.parametrize("batch, T", [((), 1), ((), 7), ((3,), 12)])
+def test_time_invariant_transfer_matrices_equal_the_time_varying_recursion(batch, T):
+    """Constant A, B, c take the doubling / block-Toeplitz path; the same matrices given per step take the
+    recursion of Eq. 188: both must agree."""
+    g = torch.Generator().manual_seed(5)
+    A = 0.3 * torch.randn(*batch, 1, 4, 4, generator=g, dtype=torch.float64) + torch.eye(4, dtype=torch.float64)
+    B = torch.randn(*batch, 1, 4, 2, generator=g, dtype=torch.float64)
+    c = torch.randn(*batch, 1, 4, generator=g, dtype=torch.float64)
+    fast = lifted.transfer_matrices(A, B, c, T)
+    slow = lifted.transfer_matrices(A.expand(*batch, T, 4, 4), B.expand(*batch, T, 4, 2), c.expand(*batch, T, 4), T)
+    for a, b in zip(fast, slow):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
