@@ -293,6 +293,17 @@ def bench_solver(p: argparse.ArgumentParser) -> None:
     p.set_defaults(_check=_check_device)
 
 
+def bench_cookbook(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--batch", type=positive_int, default=None, metavar="N",
+                   help="starts solved in one call after the single problem (default: 64; --quick: 4)")
+    p.add_argument("--repeats", type=positive_int, default=None, metavar="N",
+                   help="timed calls per figure, the median is reported (default: 5)")
+    p.add_argument("--quick", action="store_true", help="one repeat and a batch of 4 (a smoke run)")
+    _common(p, threads=None)
+    p.add_argument("--threads", type=thread_count, default=1, metavar="N",
+                   help="torch intra-op threads, and numpy's in the anchor (1: per-core timings)")
+
+
 # --------------------------------------------------------------------------------------- compare, learn
 
 
@@ -578,6 +589,9 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
      "every example of the seed-004 cookbook (robot manipulation) with its seed section"),
     (("cookbook", "run"), cookbook_run, "liecontrol.cookbook",
      "run cookbook examples (NAME... or --all): figures and a JSON of their checked outcomes"),
+    (("bench", "cookbook"), bench_cookbook, "liecontrol.bench.cookbook",
+     "the cookbook manipulator (seed 004 §9.1) vs the cookbook's own numpy algorithm, one problem and a "
+     "batch"),
     (("reproduce", "me2"), reproduce_me2, "liecontrol.reproduce.me2",
      f"pose prediction over a 300 ms horizon by the second-order Magnus (ME2) linearization (Table 1, "
      f"Figs. 2-4) of {ME2_PAPER}"),

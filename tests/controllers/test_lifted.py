@@ -265,10 +265,12 @@ def test_time_invariant_transfer_matrices_equal_the_time_varying_recursion(batch
     """Constant A, B, c take the doubling / block-Toeplitz path; the same matrices given per step take the
     recursion of Eq. 188: both must agree."""
     g = torch.Generator().manual_seed(5)
-    A = 0.3 * torch.randn(*batch, 1, 4, 4, generator=g, dtype=torch.float64) + torch.eye(4, dtype=torch.float64)
+    eye = torch.eye(4, dtype=torch.float64)
+    A = 0.3 * torch.randn(*batch, 1, 4, 4, generator=g, dtype=torch.float64) + eye
     B = torch.randn(*batch, 1, 4, 2, generator=g, dtype=torch.float64)
     c = torch.randn(*batch, 1, 4, generator=g, dtype=torch.float64)
     fast = lifted.transfer_matrices(A, B, c, T)
-    slow = lifted.transfer_matrices(A.expand(*batch, T, 4, 4), B.expand(*batch, T, 4, 2), c.expand(*batch, T, 4), T)
+    slow = lifted.transfer_matrices(A.expand(*batch, T, 4, 4), B.expand(*batch, T, 4, 2),
+                                    c.expand(*batch, T, 4), T)
     for a, b in zip(fast, slow):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)

@@ -1,0 +1,58 @@
+"""``liecontrol bench cookbook``: the cookbook's own scripts as anchors (seed 004, "Robotics Codes From
+Scratch").
+
+The manipulator of §9.1 (``iLQR_manipulator``: 3 links, two end-effector via points, 49 velocity commands)
+is solved by ``ilqr`` (recursive and batch methods) and ``ilqr_lifted`` and, for as many iterations as each
+took, by the script's published algorithm (the batch iLQR of §8.1, Eq. 108) in plain numpy
+(``_cookbook_anchor.py``, a subprocess pinned to ``--threads``).  Then ``--batch`` starts are solved in one
+call by the recursive and the lifted solver.  The goals of issue 25 are printed with their verdicts:
+
+* one problem no slower than the script: ``ratio = anchor_ms / ours_ms ≥ 1`` for the fastest of ours;
+* a batch of 64 at most 5 times one: ``per_one = batch_ms / one_ms ≤ 5`` for the same solver.
+
+The rows are :mod:`liecontrol.bench.solver`'s ``cookbook_manipulator`` workload (one implementation).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import torch
+
+from liecontrol.bench.solver import DEFAULT_SIZES, QUICK_SIZES, _print, measure
+from liecontrol.report import fmt, write_json
+
+__all__ = ["run", "goals"]
+
+
+def goals(records: list[dict]) -> list[str]:
+    """The verdict lines of the two speed goals from the workload's records."""
+    one = [r for r in records if r["batch"] == 1 and r.get("ratio") is not None]
+    lines = []
+    if one:
+        best = max(one, key=lambda r: r["ratio"])
+        lines.append(f"one problem: fastest of ours is {best['method']} at {fmt(best['ours_ms'])} ms, the "
+                     f"script {fmt(best['anchor_ms'])} ms after {best['iterations']} iterations: ratio "
+                     f"{fmt(best['ratio'])} (goal >= 1: {'met' if best['ratio'] >= 1 else 'MISSED'})")
+    for r in records:
+        if r["batch"] > 1:
+            lines.append(f"batch of {r['batch']} by {r['method']}: {fmt(r['ours_ms'])} ms, "
+                         f"{fmt(r['per_one'])} x one problem "
+                         f"(goal <= 5: {'met' if r['per_one'] <= 5 else 'MISSED'}), "
+                         f"{r['converged']} of {r['batch']} certified")
+    return lines
+
+
+def run(args) -> int:
+    torch.set_num_threads(args.threads)
+    sizes = QUICK_SIZES if args.quick else DEFAULT_SIZES
+    if args.batch is not None:
+        sizes = dataclasses.replace(sizes, cookbook_batch=args.batch)
+    records = measure(["cookbook_manipulator"], sizes=sizes, threads=args.threads, repeats=args.repeats,
+                      compile=False)
+    _print(records)
+    for line in goals(records):
+        print(line)
+    if args.json:
+        write_json(args.json, records)
+    return 0
