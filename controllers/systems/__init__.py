@@ -12,11 +12,12 @@ with a simulator that is deliberately not the MPC's model.
 from controllers.systems.arm import PlanarArm
 from controllers.systems.bicopter import Bicopter
 from controllers.systems.car import Car
+from controllers.systems.car_velocity import CarVelocity
 from controllers.systems.cartpole import CartPole
 from controllers.systems.panda import JacobianFrame, Panda
 from controllers.systems.pendulum import Pendulum
 from controllers.systems.quadrotor import Quadrotor, QuadrotorSimulator
 from controllers.systems.ugv import UGV, UGVSimulator
 
-__all__ = ["Pendulum", "CartPole", "Car", "Bicopter", "PlanarArm", "Panda", "JacobianFrame", "Quadrotor",
-           "QuadrotorSimulator", "UGV", "UGVSimulator"]
+__all__ = ["Pendulum", "CartPole", "Car", "CarVelocity", "Bicopter", "PlanarArm", "Panda", "JacobianFrame",
+           "Quadrotor", "QuadrotorSimulator", "UGV", "UGVSimulator"]
