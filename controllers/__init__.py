@@ -11,10 +11,14 @@ Submodules (loaded on first use, ``controllers.riccati``):
 ``lqt_cookbook`` §7's LQT variants: nullspace LQT, DMP as LQT with primitives, agents meeting, tennis serve
 ``riccati``    recursive Riccati LQR/LQT with feedback gains (§7.4-7.6); ``prepare`` for re-solves
 ``implicit``   implicit (KKT) gradients of the LQ solution and of iLQR's
-``basis``      piecewise, RBF, Bernstein and Fourier basis functions (§6)
+``basis``      piecewise, RBF, Bernstein and Fourier basis functions, their derivatives, splines with a
+               continuity matrix and multi-dimensional (tensor-product) bases (§6)
+``sdf``        signed distance fields on basis functions: eikonal Gauss-Newton fit, closest points (§6.8)
 ``ilqr``       iLQR (batch and recursive) with control limits (§8)
 ``ilqr_lifted`` batch iLQR (Algorithm 4) in ``[x0; w]`` with ``u = Ψ w``: control primitives (§9.12)
                and initial-state optimization (§9.4)
+``task_costs_ext`` §9.10-9.14: decoupled controls, curvature, spacetime (phase) dynamics,
+               affordance offsets coupled across time, sums of costs
 ``task_costs`` the §9 cost zoo as residuals with Jacobians: tracking, joint/task/object bounds, CoM,
                ellipsoid obstacles, distances, composed into one ``ResidualCost``
 ``boxqp``      batched box-constrained QP (projected Newton)
@@ -37,9 +41,9 @@ Private: ``_validate`` (argument checks), ``_lq_kernels`` (the Riccati sweeps sh
 
 import importlib
 
-__all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis", "ilqr", "ilqr_lifted",
-           "task_costs", "lqt_cookbook", "boxqp", "mpc", "manifold_mpc", "ik", "planar_ik", "impedance",
-           "optim", "ergodic", "systems"]
+__all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis", "sdf", "ilqr",
+           "ilqr_lifted", "task_costs", "task_costs_ext", "lqt_cookbook", "boxqp", "mpc", "manifold_mpc",
+           "ik", "planar_ik", "impedance", "optim", "ergodic", "systems"]
 
 
 def __getattr__(name: str):
