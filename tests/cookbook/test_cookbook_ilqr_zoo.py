@@ -11,30 +11,21 @@ from examples.cookbook import (
 )
 
 
-def _run(mod, tmp_path) -> dict:
-    res = mod.run(tmp_path)
-    assert (tmp_path / f"{mod.__name__.rsplit('.', 1)[-1]}.png").stat().st_size > 1000
-    failed = [k for k, v in res["checks"].items() if not v]
-    assert not failed, (failed, res["values"])
-    assert mod.SECTION and mod.TITLE
-    return res["values"]
-
-
-def test_decoupled_commands_reach_the_targets(tmp_path):
-    v = _run(ilqr_decoupling, tmp_path)
+def test_decoupled_commands_reach_the_targets(run_example):
+    v = run_example(ilqr_decoupling)
     assert v["max_target_error"] < 1e-2
     assert v["max_coupling_ratio"] < 1e-2 and v["min_coupling_ratio_without_term"] > 0.5
     assert v["max_coupling_ratio"] < 1e-2 * v["min_coupling_ratio_without_term"]
 
 
-def test_curvature_tracked_on_circles(tmp_path):
-    v = _run(ilqr_curvature, tmp_path)
+def test_curvature_tracked_on_circles(run_example):
+    v = run_example(ilqr_curvature)
     assert v["max_curvature_error"] <= 1e-4 and v["max_circle_error"] <= 1e-2
     assert v["min_circle_error_without_term"] > 5e-2 and v["min_speed"] >= 0.3
 
 
-def test_both_cars_park(tmp_path):
-    v = _run(ilqr_car_velocity, tmp_path)
+def test_both_cars_park(run_example):
+    v = run_example(ilqr_car_velocity)
     for k in ("velocity", "acceleration"):
         assert v[f"{k}_max_position_error"] <= 1e-2 and v[f"{k}_max_heading_error"] <= 1e-2
         assert v[f"{k}_max_steering"] <= 0.61
@@ -42,14 +33,14 @@ def test_both_cars_park(tmp_path):
     assert v["velocity_min_speed"] < 0  # the velocity car backs up for some start
 
 
-def test_same_grasp_offset_at_picking_and_placing(tmp_path):
-    v = _run(ilqr_affordance, tmp_path)
+def test_same_grasp_offset_at_picking_and_placing(run_example):
+    v = run_example(ilqr_affordance)
     assert v["max_offset_mismatch"] <= 1e-2 and v["max_boundary_excess"] <= 1e-2
     assert v["min_grasp_offset"] > 0.1 and v["max_cost_ratio_free_over_predetermined"] < 1
 
 
-def test_path_and_duration_optimized_together(tmp_path):
-    v = _run(ilqr_spacetime, tmp_path)
+def test_path_and_duration_optimized_together(run_example):
+    v = run_example(ilqr_spacetime)
     assert v["max_via_error"] < 1e-2 and v["max_duration_rel_error"] <= 1e-2
     assert abs(v["duration"] - v["reference_duration"]) <= 1e-2 * v["reference_duration"]
     assert v["max_step_spread"] <= 1.01 and v["max_cost_ratio_to_fixed_timing"] < 1

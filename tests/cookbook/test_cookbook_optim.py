@@ -4,31 +4,23 @@ from the values the example returns, plus the figure."""
 from examples.cookbook import optim_gauss_newton, optim_least_squares, optim_newton
 
 
-def _run(mod, tmp_path) -> dict:
-    res = mod.run(tmp_path)
-    assert (tmp_path / f"{mod.__name__.rsplit('.', 1)[-1]}.png").stat().st_size > 1000
-    failed = [k for k, v in res["checks"].items() if not v]
-    assert not failed, (failed, res["values"])
-    return res["values"]
-
-
-def test_gradient_descent_and_newton_reach_the_grid_minimum(tmp_path):
-    v = _run(optim_newton, tmp_path)
+def test_gradient_descent_and_newton_reach_the_grid_minimum(run_example):
+    v = run_example(optim_newton)
     for dim in ("1d", "2d"):
         assert v[f"gd_error_{dim}"] <= 1e-4 and v[f"newton_error_{dim}"] <= 1e-4
         assert v[f"newton_iterations_max_{dim}"] * 5 < v[f"gd_iterations_min_{dim}"]
         assert v[f"newton_iterations_max_{dim}"] >= 2  # not quadratic: Newton needs more than one step
 
 
-def test_gauss_newton_ik_reaches_every_target(tmp_path):
-    v = _run(optim_gauss_newton, tmp_path)
+def test_gauss_newton_ik_reaches_every_target(run_example):
+    v = run_example(optim_gauss_newton)
     assert v["batch"] == 24 and v["max_residual"] < 1e-10
     assert v["max_closed_form_gap"] <= 1e-8 and v["analytic_vs_autodiff"] <= 1e-9
     assert 0 < v["elbow_up_count"] <= 24
 
 
-def test_ridge_weighted_constrained_least_squares(tmp_path):
-    v = _run(optim_least_squares, tmp_path)
+def test_ridge_weighted_constrained_least_squares(run_example):
+    v = run_example(optim_least_squares)
     assert v["constraint_violation"] <= 1e-10
     for k in ("ridge", "weighted", "constrained"):
         assert v[f"{k}_cost_rel_error"] <= 1e-10
