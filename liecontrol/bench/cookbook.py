@@ -25,20 +25,23 @@ from liecontrol.report import fmt, write_json
 __all__ = ["run", "goals"]
 
 
-def goals(records: list[dict]) -> list[str]:
-    """The verdict lines of the two speed goals from the workload's records."""
-    one = [r for r in records if r["batch"] == 1 and r.get("ratio") is not None]
+def goals(records: list[dict], goal_batch: int = 64) -> list[str]:
+    """The verdict lines of the two speed goals from the workload's records: the fastest of ours on one
+    problem (smallest time) against the script, and each batch row against its solver on one problem — a
+    verdict only for a batch of ``goal_batch`` (the goal's size); other sizes are reported without one."""
+    one = [r for r in records if r["batch"] == 1 and r.get("anchor_ms") is not None]
     lines = []
     if one:
-        best = max(one, key=lambda r: r["ratio"])
+        best = min(one, key=lambda r: r["ours_ms"])
         lines.append(f"one problem: fastest of ours is {best['method']} at {fmt(best['ours_ms'])} ms, the "
                      f"script {fmt(best['anchor_ms'])} ms after {best['iterations']} iterations: ratio "
                      f"{fmt(best['ratio'])} (goal >= 1: {'met' if best['ratio'] >= 1 else 'MISSED'})")
     for r in records:
         if r["batch"] > 1:
+            verdict = (f"goal <= 5: {'met' if r['per_one'] <= 5 else 'MISSED'}" if r["batch"] == goal_batch
+                       else f"the goal is for a batch of {goal_batch}: no verdict")
             lines.append(f"batch of {r['batch']} by {r['method']}: {fmt(r['ours_ms'])} ms, "
-                         f"{fmt(r['per_one'])} x one problem "
-                         f"(goal <= 5: {'met' if r['per_one'] <= 5 else 'MISSED'}), "
+                         f"{fmt(r['per_one'])} x one problem ({verdict}), "
                          f"{r['converged']} of {r['batch']} certified")
     return lines
 
