@@ -15,8 +15,8 @@ Submodules (loaded on first use, ``controllers.riccati``):
                continuity matrix and multi-dimensional (tensor-product) bases (§6)
 ``sdf``        signed distance fields on basis functions: eikonal Gauss-Newton fit, closest points (§6.8)
 ``ilqr``       iLQR (batch and recursive) with control limits (§8)
-``ilqr_lifted`` batch iLQR (Algorithm 4) in ``[x0; w]`` with ``u = Ψ w``: control primitives (§9.12)
-               and initial-state optimization (§9.4)
+``ilqr_lifted`` batch iLQR (Algorithm 4) in ``[x0; w]`` with ``u = Ψ w``: control primitives (§9.12),
+               initial-state optimization (§9.4), least-squares feedback gains (§8.3)
 ``task_costs_ext`` §9.10-9.14: decoupled controls, curvature, spacetime (phase) dynamics,
                affordance offsets coupled across time, sums of costs
 ``task_costs`` the §9 cost zoo as residuals with Jacobians: tracking, joint/task/object bounds, CoM,

@@ -39,6 +39,7 @@ the solution use :func:`controllers.ilqr.ilqr`.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import Tensor
@@ -49,7 +50,7 @@ from controllers.ilqr import ILQRProblem
 from controllers.lifted import transfer_matrices
 from controllers.problem import Reason, SolverStatus
 
-__all__ = ["LiftedILQRSolution", "ilqr_lifted"]
+__all__ = ["LiftedGains", "LiftedILQRSolution", "ilqr_lifted", "lifted_feedback_gains"]
 
 
 @dataclass(frozen=True)
@@ -349,3 +350,150 @@ def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: T
         x=x, u=u, w=torch.where(bad[..., None], nan, w), x0=torch.where(bad[..., None], nan, x0),
         cost=torch.where(bad, nan, c), status=SolverStatus(reason == int(Reason.CONVERGED), iters, reason),
         cost_history=torch.stack(history), grad_residual=torch.where(bad, nan, res))
+
+
+# --------------------------------------------------------------------------------------------------
+# feedback gains of a batch solution: least-squares formulation of recursive iLQR (§8.3)
+# --------------------------------------------------------------------------------------------------
+
+
+class LiftedGains(NamedTuple):
+    """Result of :func:`lifted_feedback_gains`: the local policy ``u_t = K_t x_t + k_t``.
+
+    Attributes:
+        K: ``(*B, T, m, n)`` feedback gains (this package's sign: ``u = K x``; the seed's ``-K_t``).
+        k: ``(*B, T, m)`` offsets, ``k_t = û_t - K_t x̂_t + Δû_t`` (``Δû_t``: the Gauss-Newton step at the
+            point, Eq. 98, about zero at a converged solution).
+        amplification: ``(*B,)`` ``max_t cond₂(P_t)``, the factor by which Eq. 99 amplifies the rounding of
+            ``F``: expect a relative error of about ``eps · cond(C) · amplification`` in ``K`` and treat the
+            gains as unreliable where ``eps · amplification`` is not small (``eps``: the dtype's epsilon).
+    """
+
+    K: Tensor
+    k: Tensor
+    amplification: Tensor
+
+
+def _check_gains(problem, solution) -> None:
+    fn = "lifted_feedback_gains"
+    if not isinstance(problem, ILQRProblem):
+        raise TypeError(f"{fn}: argument 'problem' must be an ILQRProblem, got {type(problem).__name__}")
+    if not isinstance(solution, LiftedILQRSolution):
+        raise TypeError(f"{fn}: argument 'solution' must be a LiftedILQRSolution (from ilqr_lifted), got "
+                        f"{type(solution).__name__}")
+    if problem.u_lower is not None or problem.u_upper is not None:
+        raise ValueError(f"{fn}: problems with control limits are not supported (ilqr_lifted solves none); "
+                         "controllers.ilqr.ilqr returns gains of control-limited problems")
+    T, n, m = problem.T, problem.n, problem.m
+    u, x, w, x0 = solution.u, solution.x, solution.w, solution.x0
+    if u.shape[-2:] != (T, m) or x.shape[-2:] != (T + 1, n) or x0.shape[-1:] != (n,):
+        raise ValueError(f"{fn}: argument 'solution' must have u (*B, {T}, {m}), x (*B, {T + 1}, {n}) and x0 "
+                         f"(*B, {n}) for this problem, got u {tuple(u.shape)}, x {tuple(x.shape)}, x0 "
+                         f"{tuple(x0.shape)}")
+    if u.dtype != problem.dtype or x.dtype != problem.dtype:
+        raise TypeError(f"{fn}: argument 'solution' has dtype {u.dtype}, the problem {problem.dtype}")
+    # Ψ = I: w is u itself, bit for bit (a product with the identity is exact); failed (NaN) elements skipped
+    uf = u.reshape(*u.shape[:-2], T * m)
+    if w.shape[-1] != T * m or not bool(((uf == w) | ~torch.isfinite(uf) | ~torch.isfinite(w)).all()):
+        raise ValueError(f"{fn}: argument 'solution' was computed with control primitives Ψ ≠ I (u ≠ w); the "
+                         "least-squares gains of §8.3 need every control free: solve with Psi=None")
+    same = (x0 == problem.x0) | ~torch.isfinite(x0)
+    if not bool(same.all()):
+        raise ValueError(f"{fn}: argument 'solution' has an optimized initial state (x0_weight was given: x0 "
+                         "differs from problem.x0); the gains are defined for a fixed x0: solve with "
+                         "x0_weight=None")
+
+
+def lifted_feedback_gains(problem: ILQRProblem, solution: LiftedILQRSolution) -> LiftedGains:
+    """Feedback gains of a batch iLQR solution by the least-squares formulation of recursive iLQR (§8.3).
+
+    At the point ``(x̂, û)`` of ``solution`` (from :func:`ilqr_lifted` with ``Psi=None`` and ``x0`` fixed),
+    the Gauss-Newton model of the cost in the deviations ``(Δx_1, Δu)`` (seed indices: ``x_1`` is our
+    ``x_0``) is, with ``Δx = S_x Δx_1 + S_u Δu`` (Appendix A),
+
+        ½ Δuᵀ C Δu + Δuᵀ (c + C_x Δx_1) + ...,   C = S_uᵀ H_xx S_u + 2 S_uᵀ H_ux + H_uu,   c = S_uᵀ g_x + g_u
+
+    (Eq. 85 / 96, ``C_x = S_uᵀ H_xx S_x + H_ux``-terms: the cross block of the same Hessian in
+    ``[Δx_1; Δu]``, built by the solver's own model).  Its minimizer is affine in the augmented initial
+    deviation ``Δx̃_1 = [Δx_1; 1]``: ``Δu = -F Δx̃_1`` with
+
+        F = C⁻¹ [C_x, c]    (Eq. 97-98 for every ``Δx̃_1``: ``F [0; 1] = C⁻¹ c`` is Eq. 98 itself, and the
+                             columns ``C⁻¹ C_x`` answer a basis of initial deviations, as §7.6 does),
+
+    ``F = [F_1; ...; F_{T-1}]`` in ``(m, n+1)`` blocks.  The time-varying augmented gains
+    ``K̃_t = [K_t^seed, k_t^seed]`` (Eq. 95) follow by the forward recursion of Eq. 99 on the augmented
+    linearization ``Ã_t = [[A_t, 0], [0, 1]]``, ``B̃_t = [B_t; 0]`` (Eq. 76):
+
+        K̃_1 = F_1,  P_1 = I,  P_t = P_{t-1} (Ã_{t-1} - B̃_{t-1} K̃_{t-1})⁻¹,  K̃_t = F_t P_t.
+
+    These are the gains of the Riccati pass of :func:`controllers.ilqr.ilqr` (``method="recursive"``) at the
+    same point.
+
+    Accuracy (a property of Eq. 99, not of this implementation): ``F_t = K̃_t Φ_t`` with ``Φ_t = P_t⁻¹`` the
+    closed-loop transition from step 1 to ``t``, so recovering ``K̃_t`` divides by ``Φ_t``, whose
+    condition number grows along the horizon wherever the closed loop contracts some directions faster
+    than others; rounding in ``F`` is amplified by ``cond(P_t)`` (returned as ``amplification``; see also
+    :func:`controllers.riccati.ls_recursive_gains`).  Measured against the Riccati gains at the same point
+    (float64, relative to ``max |K|``): cookbook manipulator (``r = 10⁻⁶``) ~1e-11 before the first via point
+    and ~2e-8 after it; random LQ problems with ``T = 10, n = 4, m = 2`` from 1e-14 to 3e-7, with ``T = 20``
+    and a heavy terminal weight O(1) (useless; float32 likewise from ``T ≈ 10``).  For reliable gains use
+    the Riccati pass (:func:`controllers.ilqr.ilqr`); this route is the seed's §8.3 construction and a check
+    of it.
+
+    Args:
+        problem: the :class:`~controllers.ilqr.ILQRProblem` that was solved (no control limits).
+        solution: its :class:`LiftedILQRSolution` from :func:`ilqr_lifted` with ``Psi=None`` (``u = w``) and
+            ``x0_weight=None`` (``x0 = problem.x0``); a ``ValueError`` otherwise.
+
+    Returns:
+        :class:`LiftedGains` ``(K (*B, T, m, n), k (*B, T, m), amplification (*B,))``, in this package's
+        convention: the local
+        policy is ``u_t = K_t x_t + k_t = û_t + K_t (x_t - x̂_t) + Δû_t`` (Eq. 94 with ``K_t = -K_t^seed``,
+        ``Δû_t = -k_t^seed``).  Elements whose solution failed (NaN), whose ``C`` is not positive definite or
+        whose closed loop ``Ã - B̃ K̃`` is singular in the working precision get NaN; the others are
+        computed as if alone.  Differentiable through the point and the problem's tensors (autograd).
+    """
+    _check_gains(problem, solution)
+    T, n, m = problem.T, problem.n, problem.m
+    dtype, device = problem.dtype, problem.device
+    kw = dict(dtype=dtype, device=device)
+    x, u = solution.x, solution.u
+    bs = torch.broadcast_shapes(x.shape[:-2], u.shape[:-2], solution.x0.shape[:-1])
+    bad = ~(torch.isfinite(x).flatten(-2).all(-1) & torch.isfinite(u).flatten(-2).all(-1)).expand(bs)
+    zero = torch.zeros((), **kw)
+    x = torch.where(bad[..., None, None], zero, x)
+    u = torch.where(bad[..., None, None], zero, u)
+    x0 = x[..., 0, :]
+    # the solver's Gauss-Newton model in [Δx_1; Δu]: a zero x0 weight keeps the S_x columns (Eq. 109)
+    model = _Model(problem, torch.eye(T * m, **kw), torch.zeros(n, **kw), x0, bs, identity=True)
+    g, H, _ = model.derivatives(x0, u.reshape(*bs, T * m), x, u)
+    C, Cx, c = H[..., n:, n:], H[..., n:, :n], g[..., n:]
+    L, info = torch.linalg.cholesky_ex(C)
+    ok = (info == 0) & ~bad & torch.isfinite(C).flatten(-2).all(-1)
+    L = torch.where(ok[..., None, None], L, torch.eye(T * m, **kw))
+    rhs = torch.where(ok[..., None, None], torch.cat([Cx, c.unsqueeze(-1)], -1), zero)
+    F = torch.cholesky_solve(rhs, L).reshape(*bs, T, m, n + 1)  # Eq. 98 for every [Δx_1; 1]
+    A, B = trajectory_jacobians(problem.dynamics, x[..., :-1, :], u)
+    A = A.movedim(0, -3).expand(*bs, T, n, n)
+    B = B.movedim(0, -3).expand(*bs, T, n, m)
+    eye = torch.eye(n + 1, **kw)
+    last = torch.zeros(n + 1, **kw)
+    last[n] = 1
+    P = eye.expand(*bs, n + 1, n + 1)
+    amp = torch.ones(bs, **kw)
+    Kt = [F[..., 0, :, :]]
+    for t in range(1, T):  # Eq. 99, augmented: Ã - B̃K̃ = [[A - B K^s, -B k^s], [0, 1]]
+        top = torch.cat([A[..., t - 1, :, :], torch.zeros(*bs, n, 1, **kw)], -1)
+        top = top - B[..., t - 1, :, :] @ Kt[-1]
+        Acl = torch.cat([top, last.expand(*bs, 1, n + 1)], -2)
+        sol_t, info = torch.linalg.solve_ex(Acl.mT, P.mT)  # P_t = P_{t-1} Acl⁻¹ ⇔ Aclᵀ P_tᵀ = P_{t-1}ᵀ
+        ok = ok & (info == 0) & torch.isfinite(sol_t).flatten(-2).all(-1)
+        P = torch.where(ok[..., None, None], sol_t.mT, eye)
+        amp = torch.maximum(amp, torch.linalg.cond(P))
+        Kt.append(F[..., t, :, :] @ P)
+    Ks = torch.stack(Kt, -3)  # (*B, T, m, n+1), the seed's K̃_t
+    K = -Ks[..., :n]
+    k = u - (K @ x[..., :T, :].unsqueeze(-1)).squeeze(-1) - Ks[..., n]
+    nan = torch.full((), float("nan"), **kw)
+    return LiftedGains(torch.where(ok[..., None, None, None], K, nan),
+                       torch.where(ok[..., None, None], k, nan), torch.where(ok, amp, nan))

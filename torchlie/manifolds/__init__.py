@@ -23,6 +23,9 @@ file            contents                                          ⊞/⊟/⊕, G
 ``statistics.py`` :func:`karcher_mean`, :func:`tangent_covariance`,   —           uses it
                 :func:`fit_gaussian`, :func:`gaussian_log_density`,
                 :func:`gaussian_product` (any space with Exp/Log)
+``metric.py``   :func:`geodesic`, :func:`path_energy`,              —           —
+                :func:`path_length` under a varying metric ``G(x)``
+                (non-homogeneous manifolds, seed 004 §12.6)
 ==============  ================================================  ==========  ============
 
 Two vocabularies on one class
@@ -66,6 +69,7 @@ dims, broadcasts, keeps dtype and device, and is differentiable.
 
 from torchlie.manifolds.base import Manifold, RiemannianManifold, manifold_tolerance
 from torchlie.manifolds.groups import SE3, SO2, SO3, Euclidean, Rn
+from torchlie.manifolds.metric import Geodesic, GeodesicReason, geodesic, path_energy, path_length
 from torchlie.manifolds.product import ProductManifold, ProductState
 from torchlie.manifolds.spd import (
     SPD,
@@ -153,4 +157,10 @@ __all__ = [
     "fit_gaussian",
     "gaussian_log_density",
     "gaussian_product",
+    # varying metrics (metric.py)
+    "Geodesic",
+    "GeodesicReason",
+    "geodesic",
+    "path_energy",
+    "path_length",
 ]
