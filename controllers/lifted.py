@@ -45,10 +45,13 @@ def transfer_matrices(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor | None =
 
     Appendix A (Eq. 188): block row ``t`` of ``S_x`` is ``A_{t-1} ... A_0``; block ``(t, s)`` of ``S_u``
     is ``A_{t-1} ... A_{s+1} B_s`` for ``s < t``.  ``A (*B, T|1, n, n)``, ``B (*B, T|1, n, m)``,
-    ``c (*B, T|1, n)`` (time dims of 1 broadcast; then ``T`` must be given).
+    ``c (*B, T|1, n)`` (time dims of 1 broadcast; then ``T`` must be given).  ``T = 0`` (no step) gives
+    ``S_x = I``, an empty ``S_u (*B, n, 0)`` and ``s_c = 0``.
     """
     if T is None:
         T = max(A.shape[-3], B.shape[-3], 1 if c is None else c.shape[-2])
+    if isinstance(T, bool) or not isinstance(T, int) or T < 0:
+        raise ValueError(f"transfer_matrices: argument 'T' must be an int >= 0, got {T!r}")
     n, m = A.shape[-1], B.shape[-1]
     bs = broadcast_shapes(A.shape[:-3], B.shape[:-3], *([] if c is None else [c.shape[:-2]]))
     dt, dev = A.dtype, A.device
@@ -96,7 +99,8 @@ def _transfer_time_invariant(A: torch.Tensor, B: torch.Tensor, c: torch.Tensor |
     sc = None
     if c is not None:
         Pc = (P[..., :T, :, :] @ c.unsqueeze(-1).unsqueeze(-3)).squeeze(-1)  # A^k c
-        sc = torch.cat([torch.zeros_like(Pc[..., :1, :]), Pc.cumsum(-2)], -2).reshape(*bs, (T + 1) * n)
+        Pc = Pc.expand(*bs, T, n)
+        sc = torch.cat([Pc.new_zeros(*bs, 1, n), Pc.cumsum(-2)], -2).reshape(*bs, (T + 1) * n)
     return Sx, Su, sc
 
 
@@ -297,6 +301,13 @@ def lifted_quadratic(problem: LQProblem, *, Qbig: torch.Tensor | None = None,
         if Psi.dim() < 2 or Psi.shape[-2] != T * m:
             raise ValueError(f"solve_lifted: argument 'Psi' must have shape (*B, {T * m}, K), "
                              f"got {tuple(Psi.shape)}")
+    for name, M in (("Qbig", Qbig), ("Rbig", Rbig), ("Psi", Psi)):
+        if M is not None:
+            try:
+                torch.broadcast_shapes(bs, M.shape[:-2])
+            except RuntimeError:
+                raise ValueError(f"solve_lifted: the batch dims {tuple(M.shape[:-2])} of argument '{name}' "
+                                 f"do not broadcast with the problem's {tuple(bs)}") from None
     cost = problem.cost
     # a full precision replaces the block-diagonal one: expand its references separately
     if Qbig is not None:
@@ -418,6 +429,7 @@ def solve_lifted(problem: LQProblem, *, Qbig: torch.Tensor | None = None, Rbig: 
             ``blockdiag(Q_t)`` (may couple time steps / agents).
         Rbig: optional full control weight ``(*B, T m, T m)`` (e.g. :func:`smoothness_precision`).
         Psi: optional control primitives ``(T m, K)`` or ``(*B, T m, K)``: ``u = Ψ w``.
+            The batch dims of ``Qbig``, ``Rbig`` and ``Psi`` broadcast with the problem's into the result's.
         optimize_x0: also optimize the initial state (``R̃ = blockdiag(0, R)``, Eq. 65); the cost on
             ``x_0`` (``Q_0``, references) then matters and must make the problem well posed.
         covariance: return ``cov`` (Eq. 63).
@@ -426,8 +438,9 @@ def solve_lifted(problem: LQProblem, *, Qbig: torch.Tensor | None = None, Rbig: 
         raise TypeError("solve_lifted: argument 'problem' must be an LQProblem, "
                         f"got {type(problem).__name__}")
     T, n, m = problem.T, problem.n, problem.m
-    bs = problem.batch_shape
     lq = lifted_quadratic(problem, Qbig=Qbig, Rbig=Rbig, Psi=Psi, optimize_x0=optimize_x0)
+    # batched Qbig / Rbig / Psi broadcast with the problem's batch dims (all carried by H and g)
+    bs = torch.broadcast_shapes(problem.batch_shape, lq.H.shape[:-2], lq.g.shape[:-1])
     L, info = torch.linalg.cholesky_ex(lq.H)
     z = -torch.cholesky_solve(lq.g.unsqueeze(-1), L).squeeze(-1)
     xs = (lq.S @ z.unsqueeze(-1)).squeeze(-1) + lq.s0
@@ -447,7 +460,7 @@ def solve_lifted(problem: LQProblem, *, Qbig: torch.Tensor | None = None, Rbig: 
     J = (z * (lq.H @ z.unsqueeze(-1)).squeeze(-1)).sum(-1) + 2 * (z * lq.g).sum(-1) + lq.const
     cov = torch.cholesky_inverse(L) if covariance else None
     reason = torch.where(info.expand(bs) != 0, int(Reason.SINGULAR_QUU), 0).to(torch.int64)
-    inp = problem.input_status()
+    inp = problem.input_status().expand(bs)
     reason = torch.where(inp != 0, inp, reason)
     return LiftedSolution(x=x, u=u, cost=J, x0=x0o, w=w, cov=cov, Sx=lq.Sx, Su=lq.Su,
                           status=SolverStatus.from_reason(reason, 1))

@@ -339,12 +339,16 @@ class MeetingLQT(NamedTuple):
         solution: the solved trajectory (:class:`~controllers.problem.LQSolution` from Riccati with gains,
             or :class:`~controllers.lifted.LiftedSolution`).
         positions: ``(*B, T+1, A, D)`` the agents' positions.
+        cost: ``(*B,)`` the stated objective (targets + meeting + control terms) at the solution:
+            ``solution.cost`` plus the constant ``μᵀ Q_meet μ`` that the problem's linear term leaves out
+            when a meeting time is ``T`` (see :func:`meeting_lqt`).
     """
 
     problem: LQProblem
     Qbig: torch.Tensor | None
     solution: object
     positions: torch.Tensor
+    cost: torch.Tensor
 
 
 def meeting_lqt(x0: torch.Tensor, targets: torch.Tensor, T: int, dt: float, *,
@@ -364,7 +368,14 @@ def meeting_lqt(x0: torch.Tensor, targets: torch.Tensor, T: int, dt: float, *,
         x0: ``(*B, A, 2D)`` initial ``[p_i; ṗ_i]`` of the ``A ≥ 2`` agents.
         targets: ``(*B, A, D)`` final positions.
         T, dt: horizon and time step.
-        meet_times: one int (default ``T // 2``) or one time per agent.
+        meet_times: one int in ``[1, T]`` (default ``T // 2``) or one time per agent in ``[0, T]``, at most
+            one of them ``0`` (``x_0`` is fixed: a meeting of two agents at ``t = 0`` would be a no-op).
+
+    The meeting term penalizes ``p_i - p_j`` itself at every meeting time, also at ``T`` where the target
+    reference ``μ_T`` is non-zero: the problem stores ``Q = Q_target + Q_meet`` with reference ``μ`` and the
+    linear term ``q = Q_meet μ`` (Eq. 59's ``2 qᵀ(x - μ)``), so that
+    ``(x - μ)ᵀ Q (x - μ) + 2 qᵀ(x - μ) = (x - μ)ᵀ Q_target (x - μ) + xᵀ Q_meet x - μᵀ Q_meet μ``; the
+    constant ``μᵀ Q_meet μ`` is added back in :attr:`MeetingLQT.cost`.
     """
     fn = "meeting_lqt"
     _check_float(x0, "x0", fn, 2, "(*B, A, 2D)")
@@ -384,6 +395,9 @@ def meeting_lqt(x0: torch.Tensor, targets: torch.Tensor, T: int, dt: float, *,
                               for t in times):
         raise ValueError(f"{fn}: argument 'meet_times' must be an int or {A} ints in [0, {T}], "
                          f"got {meet_times!r}")
+    if times.count(0) > 1:
+        raise ValueError(f"{fn}: argument 'meet_times' must not have two agents meet at t = 0 (x0 is fixed, "
+                         f"the meeting would be ignored); use times in [1, {T}], got {meet_times!r}")
     dtp, dev = x0.dtype, x0.device
     d1 = double_integrator(D, dt, dtp, dev)
     n1, n = 2 * D, 2 * D * A
@@ -397,32 +411,36 @@ def meeting_lqt(x0: torch.Tensor, targets: torch.Tensor, T: int, dt: float, *,
     x_ref = torch.cat([torch.zeros(*ref.shape[:-1], T, n, dtype=dtp, device=dev), ref.unsqueeze(-2)], -2)
     eD = torch.eye(D, dtype=dtp, device=dev)
     pos = lambda i, t: slice(t * n + i * n1, t * n + i * n1 + D)  # noqa: E731  (rows of p_i at t in x)
+    # the meeting precision over the whole trajectory (pairs of time-indexed positions)
+    Qm = torch.zeros((T + 1) * n, (T + 1) * n, dtype=dtp, device=dev)
+    for i in range(A):
+        for j in range(i + 1, A):
+            a, b = pos(i, times[i]), pos(j, times[j])
+            Qm[a, a] += meet_weight * eD
+            Qm[b, b] += meet_weight * eD
+            Qm[a, b] -= meet_weight * eD
+            Qm[b, a] -= meet_weight * eD
+    # penalize p_i - p_j, not its deviation from the (target) reference: linear term q = Q_meet μ
+    mu = x_ref.flatten(-2)
+    q = (Qm @ mu.unsqueeze(-1)).squeeze(-1).unflatten(-1, (T + 1, n))
+    const = (mu * q.flatten(-2)).sum(-1)  # μᵀ Q_meet μ, left out of the problem's cost
     Qbig = None
     if len(set(times)) == 1:
         t = times[0]
-        lap = A * eyeA - torch.ones(A, A, dtype=dtp, device=dev)  # Σ_{i<j} (e_i - e_j)(e_i - e_j)ᵀ
-        sel = torch.zeros(n1, n1, dtype=dtp, device=dev)
-        sel[:D, :D] = eD
-        Q[t] = Q[t] + meet_weight * torch.kron(lap, sel)
+        Q[t] = Q[t] + Qm[t * n:(t + 1) * n, t * n:(t + 1) * n]
     else:
-        Qbig = torch.zeros((T + 1) * n, (T + 1) * n, dtype=dtp, device=dev)
+        Qbig = Qm.clone()
         for t in range(T + 1):
-            Qbig[t * n:(t + 1) * n, t * n:(t + 1) * n] = Q[t]
-        for i in range(A):
-            for j in range(i + 1, A):
-                a, b = pos(i, times[i]), pos(j, times[j])
-                Qbig[a, a] += meet_weight * eD
-                Qbig[b, b] += meet_weight * eD
-                Qbig[a, b] -= meet_weight * eD
-                Qbig[b, a] -= meet_weight * eD
+            Qbig[t * n:(t + 1) * n, t * n:(t + 1) * n] += Q[t]
     R = control_weight * torch.eye(D * A, dtype=dtp, device=dev)
-    problem = LQProblem(LinearDynamics(Ad, Bd), QuadraticCost(Q, R, x_ref=x_ref), x0.flatten(-2), horizon=T)
+    problem = LQProblem(LinearDynamics(Ad, Bd), QuadraticCost(Q, R, x_ref=x_ref, q=q), x0.flatten(-2),
+                        horizon=T)
     if Qbig is None:
         sol = riccati_solve(problem)
     else:
         sol = solve_lifted(problem, Qbig=Qbig)
     positions = sol.x.unflatten(-1, (A, n1))[..., :D]
-    return MeetingLQT(problem=problem, Qbig=Qbig, solution=sol, positions=positions)
+    return MeetingLQT(problem=problem, Qbig=Qbig, solution=sol, positions=positions, cost=sol.cost + const)
 
 
 # --------------------------------------------------------------------------------------------------

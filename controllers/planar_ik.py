@@ -168,18 +168,31 @@ def _rank_mask(S: Tensor, m: int, n: int, rcond: float | None) -> Tensor:
     return S > tol * S.amax(-1, keepdim=True)
 
 
+def _standin(J: Tensor) -> tuple[Tensor, Tensor | None]:
+    """``J`` with its non-finite batch elements replaced by zeros (so no SVD sees NaN), and their mask."""
+    bad = ~torch.isfinite(J).flatten(-2).all(-1)
+    if not bool(bad.any()):
+        return J, None
+    return torch.where(bad[..., None, None], 0.0, J), bad
+
+
+def _nan_out(M: Tensor, bad: Tensor | None) -> Tensor:
+    return M if bad is None else torch.where(bad[..., None, None], math.nan, M)
+
+
 def damped_pinv(J: Tensor, damping: float = 0.0, rcond: float | None = None) -> Tensor:
     """Damped pseudo-inverse ``J⁺_λ = V Σ (Σ² + λ²)⁻¹ Uᵀ = Jᵀ (J Jᵀ + λ² I)⁻¹`` ``(*B, n, m)``.
 
     ``J (*B, m, n)``.  ``damping = λ = 0`` gives the Moore–Penrose pseudo-inverse ``J⁺`` of Eq. 19, the
     singular values at most ``rcond · σ_max`` (default ``max(m, n) · eps``, as :func:`torch.linalg.pinv`)
     dropped: finite at a singular ``J``.  ``λ > 0`` bounds the gain ``σ / (σ² + λ²) ≤ 1 / (2λ)`` near
-    singularities.
+    singularities.  An element of the batch with a non-finite entry gives NaN (only that element).
     """
     fn = "damped_pinv"
     J = _check_J(J, fn)
     if not (math.isfinite(damping) and damping >= 0):
         raise ValueError(f"{fn}: argument 'damping' must be a finite float >= 0, got {damping!r}")
+    J, bad = _standin(J)
     m, n = J.shape[-2:]
     U, S, Vh = torch.linalg.svd(J, full_matrices=False)
     keep = _rank_mask(S, m, n, rcond)
@@ -187,7 +200,7 @@ def damped_pinv(J: Tensor, damping: float = 0.0, rcond: float | None = None) -> 
         gain = S / (S * S + damping * damping)
     else:
         gain = torch.where(keep, 1.0 / torch.where(keep, S, 1.0), 0.0)
-    return (Vh.mT * gain[..., None, :]) @ U.mT
+    return _nan_out((Vh.mT * gain[..., None, :]) @ U.mT, bad)
 
 
 def nullspace_projector(J: Tensor, rcond: float | None = None, method: str = "svd") -> Tensor:
@@ -198,7 +211,8 @@ def nullspace_projector(J: Tensor, rcond: float | None = None, method: str = "sv
     ``rcond · σ_max``) — computed as ``I - U_r U_rᵀ`` with the complementary columns ``U_r`` from the thin
     SVD of ``J`` (``U`` of ``J⁺`` is ``V`` of ``J``), which is the same matrix and differentiable where the
     kept singular values are distinct.  ``method="pinv"``: ``I - J⁺ J`` with :func:`damped_pinv` (``λ = 0``).
-    ``N`` is symmetric and idempotent, ``J N = 0``; zero when ``J`` has full column rank.
+    ``N`` is symmetric and idempotent, ``J N = 0``; zero when ``J`` has full column rank.  An element of the
+    batch with a non-finite entry gives NaN (only that element).
     """
     fn = "nullspace_projector"
     J = _check_J(J, fn)
@@ -208,10 +222,11 @@ def nullspace_projector(J: Tensor, rcond: float | None = None, method: str = "sv
         return eye - damped_pinv(J, 0.0, rcond) @ J
     if method != "svd":
         raise ValueError(f"{fn}: argument 'method' must be 'svd' or 'pinv', got {method!r}")
+    J, bad = _standin(J)
     _, S, Vh = torch.linalg.svd(J, full_matrices=False)
     keep = _rank_mask(S, m, n, rcond).to(J.dtype)
     Vr = Vh * keep[..., :, None]
-    return eye - Vr.mT @ Vr
+    return _nan_out(eye - Vr.mT @ Vr, bad)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -297,8 +312,10 @@ class PlanarIKResult:
         converged: ``(*B,)`` bool — ``residual ≤ tol``, checked at ``q``.
         iterations: ``(*B,)`` int64 Gauss–Newton iterations spent.
         reason: ``(*B,)`` int64 codes of :class:`controllers.problem.Reason`: ``CONVERGED``, ``STALLED`` (a
-            stationary point of the cost, ``‖(RJ)ᵀ R f‖ ≤ tol²``, with ``residual > tol``: an unreachable
-            target or a local minimum; or no step lowered the cost up to a damping of ``1e8``),
+            stationary point of the cost, ``‖(RJ)ᵀ R f‖ ≤ tol²``, with ``residual > tol`` that the solver
+            returned to after ``escape_tries`` deterministic perturbations of ``q`` — typically the minimum
+            of an unreachable target, possibly a local minimum, never the zero-gradient saddle of a
+            stretched or folded start; or no step lowered the cost up to a damping of ``1e8``),
             ``MAX_ITERATIONS`` or ``NONFINITE_INPUT`` (NaN/inf in this element's target, start, lengths or
             angles: its ``q`` and errors are NaN).
         residual: ``(*B,)`` weighted residual norm ``‖R f(q)‖`` (``W = Rᵀ R``) at ``q``.
@@ -319,9 +336,19 @@ class PlanarIKResult:
         return SolverStatus(converged=self.converged, iterations=self.iterations, reason=self.reason)
 
 
+def _default_tol(task: _Task, floor: float, factor: float) -> Tensor:
+    """The dtype-aware default tolerance ``(*B,)``: ``max(floor, factor · eps · (1 + Σ_i |ℓ_i|))`` — the
+    float64 value ``floor`` unless the dtype's rounding of a pose of size ``Σℓ`` is coarser (float32)."""
+    eps = torch.finfo(task.q0.dtype).eps
+    reach = task.ell.abs().sum(-1)
+    return (factor * eps * (1.0 + reach)).clamp_min(floor).expand(task.bs)
+
+
 def _check_solver_args(fn: str, max_iter, tol, damping) -> None:
     if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 0:
         raise ValueError(f"{fn}: argument 'max_iter' must be an int >= 0, got {max_iter!r}")
+    if tol is None:
+        return
     if isinstance(tol, bool) or not isinstance(tol, numbers.Real) or not tol > 0:
         raise ValueError(f"{fn}: argument 'tol' must be a float > 0, got {tol!r}")
     if isinstance(damping, bool) or not isinstance(damping, numbers.Real) or not (
@@ -395,8 +422,8 @@ def _attach(q: Tensor, task: _Task, damping: float) -> Tensor:
 
 def planar_ik(lengths, target: Tensor, q0: Tensor, *, orientation: Tensor | float | None = None,
               object_angle: Tensor | float | None = None, weight: Tensor | None = None, max_iter: int = 100,
-              tol: float = 1e-9, damping: float = 1e-9, line_search_steps: int = 12, max_step: float = 0.5
-              ) -> PlanarIKResult:
+              tol: float | None = None, damping: float = 1e-9, line_search_steps: int = 12,
+              max_step: float = 0.5, escape_tries: int = 3) -> PlanarIKResult:
     """Batched planar IK by Gauss–Newton (Eq. 19): ``q ← q - α J⁺_λ f(q)`` on the residual of
     :func:`planar_residual`.
 
@@ -409,7 +436,9 @@ def planar_ik(lengths, target: Tensor, q0: Tensor, *, orientation: Tensor | floa
             (Eq. 20) — and weighted: ``weight`` is in that frame.
         weight: ``(*B, p)`` (diagonal, ``≥ 0``) or ``(*B, p, p)`` (SPD) precision ``W`` of the residual
             (``p = 2``, or 3 with orientation); the cost is ``fᵀ W f``, solved as ``‖R f‖²``, ``W = Rᵀ R``.
-        max_iter: iterations at most; ``tol``: the certificate ``‖R f(q)‖ ≤ tol`` at the returned ``q``.
+        max_iter: iterations at most; ``tol``: the certificate ``‖R f(q)‖ ≤ tol`` at the returned ``q``;
+            default (``None``) dtype-aware, per element: ``max(1e-9, 100 · eps · (1 + Σ|ℓ|))`` (``1e-9``
+            in float64, about ``1e-5`` for a unit-size arm in float32, whose pose rounds at ``~eps Σℓ``).
         damping: the smallest ``λ`` of the damped pseudo-inverse (:func:`damped_pinv`).  Per element, ``λ`` is
             divided by 10 after a full step and multiplied by 10 (at least ``1e-12``) after a shortened or
             failed one (Levenberg–Marquardt): near singular, large-residual minima (an unreachable target,
@@ -418,6 +447,11 @@ def planar_ik(lengths, target: Tensor, q0: Tensor, *, orientation: Tensor | floa
             singular ``J`` the pseudo-inverse step is huge and would wind the joints by many turns.
         line_search_steps: step sizes ``α = 1, ½, …`` tried (all at once, batched); the first that lowers the
             cost is taken (none: the damping grows).
+        escape_tries: where the gradient ``(RJ)ᵀ R f`` vanishes with ``‖R f‖ > tol`` (e.g. the stretched home
+            configuration ``q = 0``: a saddle of the cost for a reachable target), ``q`` is moved by a fixed
+            perturbation (``0.25 (try+1) (-1)^j (j+1)/k`` rad on joint ``j``) and the iterations resume, at
+            most this many times per element; an element that comes back to a stationary point after that is
+            ``STALLED``.
 
     Returns:
         :class:`PlanarIKResult` (per-element status).  Elements stop as soon as they are certified (their
@@ -434,6 +468,8 @@ def planar_ik(lengths, target: Tensor, q0: Tensor, *, orientation: Tensor | floa
     fn = "planar_ik"
     task = _Task(fn, lengths, target, q0, orientation, object_angle, weight)
     _check_solver_args(fn, max_iter, tol, damping)
+    if isinstance(escape_tries, bool) or not isinstance(escape_tries, int) or escape_tries < 0:
+        raise ValueError(f"{fn}: argument 'escape_tries' must be an int >= 0, got {escape_tries!r}")
     if not (isinstance(max_step, numbers.Real) and max_step > 0):
         raise ValueError(f"{fn}: argument 'max_step' must be a float > 0, got {max_step!r}")
     if isinstance(line_search_steps, bool) or not isinstance(line_search_steps, int) or line_search_steps < 1:
@@ -441,17 +477,31 @@ def planar_ik(lengths, target: Tensor, q0: Tensor, *, orientation: Tensor | floa
     bs, k = task.bs, task.k
     dtype, device = task.q0.dtype, task.q0.device
     alphas = 0.5 ** torch.arange(line_search_steps, dtype=dtype, device=device)
+    tol = _default_tol(task, 1e-9, 100.0) if tol is None else float(tol)
+    jj = torch.arange(k, dtype=dtype, device=device)
+    kick = 0.25 * (-1.0) ** jj * (jj + 1) / k  # the fixed escape direction
     with torch.no_grad():
         q = task.q0.detach().expand(*bs, k).clone()
         iters = torch.zeros(bs, dtype=torch.int64, device=device)
         stalled = torch.zeros(bs, dtype=torch.bool, device=device)
+        tries = torch.zeros(bs, dtype=torch.int64, device=device)
         lam = torch.full(bs, float(damping), dtype=dtype, device=device)
         lam_floor = max(float(damping), 1e-12)
         f, J = task.residual(q)
         E = (f * f).sum(-1)
         for _ in range(max_iter):
             grad = (J.mT @ f[..., None])[..., 0].norm(dim=-1)
-            stalled = stalled | ((E.sqrt() > tol) & (grad <= tol * tol) & task.ok)
+            flat = (E.sqrt() > tol) & (grad <= tol * tol) & task.ok & ~stalled
+            escape = flat & (tries < escape_tries)
+            if bool(escape.any()):  # a zero-gradient non-solution: perturb q and resume
+                q = torch.where(escape[..., None], q + (tries + 1).to(dtype)[..., None] * kick, q)
+                tries = tries + escape.to(torch.int64)
+                lam = torch.where(escape, float(damping), lam)
+                fn_, Jn = task.residual(q)
+                f, J = torch.where(escape[..., None], fn_, f), torch.where(escape[..., None, None], Jn, J)
+                E = (f * f).sum(-1)
+                grad = (J.mT @ f[..., None])[..., 0].norm(dim=-1)
+            stalled = stalled | ((E.sqrt() > tol) & (grad <= tol * tol) & task.ok & (tries >= escape_tries))
             done = (E.sqrt() <= tol) | stalled | ~task.ok
             if bool(done.all()):
                 break
@@ -537,13 +587,31 @@ def task_priority_ik_step(J1: Tensor, f1: Tensor, J2: Tensor | None = None, f2: 
         raise ValueError(f"{fn}: pass either a secondary task (J2, f2) or a joint-space vector g, not both")
     if g is not None and (not isinstance(g, Tensor) or g.dtype != J1.dtype or g.shape[-1] != n):
         raise ValueError(f"{fn}: argument 'g' must be a {J1.dtype} tensor (*B, {n})")
+    if J2 is not None:
+        J2 = _check_J(J2, fn)
+        if (J2.dtype != J1.dtype or J2.shape[-1] != n or not isinstance(f2, Tensor)
+                or f2.shape[-1] != J2.shape[-2]):
+            raise ValueError(f"{fn}: arguments 'J2' (*B, p2, {n}) and 'f2' (*B, p2) must match each other "
+                             "and J1")
+    # a batch element with a non-finite input is solved on zeros and returned as NaN (the others unchanged)
+    parts = [(J1, 2), (f1, 1)] + [(v, nd) for v, nd in ((J2, 2), (f2, 1), (g, 1)) if v is not None]
+    bad = None
+    for v, nd in parts:
+        b = ~torch.isfinite(v).flatten(-nd).all(-1)
+        bad = b if bad is None else bad | b
+    if bool(bad.any()):
+        def clean(v, nd):
+            return None if v is None else torch.where(bad.reshape(*bad.shape, *([1] * nd)), 0.0, v)
+        J1, f1, J2, f2, g = clean(J1, 2), clean(f1, 1), clean(J2, 2), clean(f2, 1), clean(g, 1)
+        out = _tp_step(J1, f1, J2, f2, g, damping, secondary_damping)
+        return torch.where(bad[..., None], math.nan, out)
+    return _tp_step(J1, f1, J2, f2, g, damping, secondary_damping)
+
+
+def _tp_step(J1, f1, J2, f2, g, damping, secondary_damping) -> Tensor:
     if J2 is None:
         step, ng = _pinv_apply(J1, -f1, damping, g)
         return step if g is None else step + ng
-    J2 = _check_J(J2, fn)
-    if (J2.dtype != J1.dtype or J2.shape[-1] != n or not isinstance(f2, Tensor)
-            or f2.shape[-1] != J2.shape[-2]):
-        raise ValueError(f"{fn}: arguments 'J2' (*B, p2, {n}) and 'f2' (*B, p2) must match each other and J1")
     step, _ = _pinv_apply(J1, -f1, damping)
     N1 = nullspace_projector(J1)
     rhs = -(f2 + (J2 @ step[..., None])[..., 0])
@@ -581,19 +649,23 @@ class TaskPriorityIKResult:
 
 def task_priority_ik(lengths, target: Tensor, q0: Tensor, secondary: Tensor | Callable, *,
                      orientation: Tensor | float | None = None, object_angle: Tensor | float | None = None,
-                     weight: Tensor | None = None, max_iter: int = 200, tol: float = 1e-9,
-                     tol_secondary: float = 1e-8, damping: float = 1e-6,
+                     weight: Tensor | None = None, max_iter: int = 200, tol: float | None = None,
+                     tol_secondary: float | None = None, damping: float = 1e-6,
                      secondary_damping: float | None = None,
                      max_step: float = 0.5) -> TaskPriorityIKResult:
     """Prioritized IK (§5.2): the primary task of :func:`planar_ik` exactly, a secondary task in its null
     space, iterating :func:`task_priority_ik_step` (full steps) until the certificate of
-    :class:`TaskPriorityIKResult` holds at the returned ``q``.
+    :class:`TaskPriorityIKResult` holds at the returned ``q``.  Known limitation: full steps can fall into a
+    period-2 cycle on some reachable problems (reported ``MAX_ITERATIONS``, never ``CONVERGED``).
 
     Args:
         secondary: a joint-space preference ``q_ref (*B, k)`` (``f2 = q - q_ref``, ``J2 = I``), or a
             callable ``q (*B, k) -> (f2 (*B, p2), J2 (*B, p2, k))`` (e.g. a link's position from
             :func:`planar_fk_links` and :func:`planar_jacobian`).
         max_step: a step is scaled down (direction kept) to ``‖Δq‖∞ ≤ max_step`` (rad).
+        tol, tol_secondary: the certificate's tolerances; default (``None``) dtype-aware, per element:
+            ``max(1e-9, 100 eps (1 + Σ|ℓ|))`` and ``max(1e-8, 1000 eps (1 + Σ|ℓ|))`` (the float64 values
+            ``1e-9``/``1e-8``; in float32 the rounding level of the pose and of the projected gradient).
         damping, secondary_damping: of :func:`task_priority_ik_step`.
         the others: as :func:`planar_ik`.
 
@@ -602,10 +674,12 @@ def task_priority_ik(lengths, target: Tensor, q0: Tensor, secondary: Tensor | Ca
     fn = "task_priority_ik"
     task = _Task(fn, lengths, target, q0, orientation, object_angle, weight)
     _check_solver_args(fn, max_iter, tol, damping)
-    if not (isinstance(tol_secondary, numbers.Real) and tol_secondary > 0):
+    if tol_secondary is not None and not (isinstance(tol_secondary, numbers.Real) and tol_secondary > 0):
         raise ValueError(f"{fn}: argument 'tol_secondary' must be a float > 0, got {tol_secondary!r}")
     bs, k = task.bs, task.k
     dtype, device = task.q0.dtype, task.q0.device
+    tol = _default_tol(task, 1e-9, 100.0) if tol is None else float(tol)
+    tol_secondary = _default_tol(task, 1e-8, 1000.0) if tol_secondary is None else float(tol_secondary)
     if isinstance(secondary, Tensor):
         if secondary.dtype != dtype or secondary.shape[-1] != k:
             raise ValueError(f"{fn}: argument 'secondary' as a tensor must be joint angles q_ref (*B, {k}) "

@@ -182,7 +182,7 @@ def _grid(n: int, d: int, dtype, device) -> Tensor:
 def fit_sdf(boundary: Tensor, lower, upper, *, basis: Callable[..., Tensor] | Sequence[Callable[..., Tensor]]
             | None = None, distances: Tensor | None = None, eikonal_points: Tensor | None = None,
             eikonal_grid: int = 16, eikonal_weight: float = 0.01, w0: Tensor | None = None,
-            tol: float = 1e-8, max_iter: int = 100, damping: float = 1e-9) -> SDFFitResult:
+            tol: float | None = None, max_iter: int = 100, damping: float = 1e-9) -> SDFFitResult:
     """Fit the weights of an SDF to observed distances with the eikonal cost, Eq. (58), by Gauss–Newton.
 
     ``min_w Σ_m (Ψ(t_m) w - x_m)² + λ Σ_n (∇x_nᵀ ∇x_n - 1)²`` with ``∇x_n = ∇Ψ(t_n) w`` (in the coordinates of
@@ -204,6 +204,9 @@ def fit_sdf(boundary: Tensor, lower, upper, *, basis: Callable[..., Tensor] | Se
             at the mean of the boundary points with their mean distance to it as radius (negative inside;
             the prior shape of Fig. 15).  The sign convention (negative inside) comes from this start.
         tol, max_iter, damping: of :func:`controllers.optim.gauss_newton` (``converged``: ``‖2Jᵀf‖ ≤ tol``).
+            The default ``tol = None`` is dtype-aware (the rule of :func:`~controllers.optim.gauss_newton`):
+            ``τ · max(1, ‖2Jᵀf‖ at w0)`` per shape with ``τ = 10⁻⁸`` in float64 and ``10⁻⁴`` in float32, so a
+            float32 fit that reaches the float64 optimum to its precision is reported converged.
 
     Returns:
         :class:`SDFFitResult`.
@@ -212,6 +215,9 @@ def fit_sdf(boundary: Tensor, lower, upper, *, basis: Callable[..., Tensor] | Se
     if not isinstance(boundary, Tensor) or not boundary.dtype.is_floating_point or boundary.dim() < 2:
         got = tuple(boundary.shape) if isinstance(boundary, Tensor) else type(boundary).__name__
         raise ValueError(f"{fn}: 'boundary' must be a floating tensor (*S, M, d), got {got}")
+    if boundary.shape[-2] == 0:
+        raise ValueError(f"{fn}: 'boundary' must hold at least one contour point (*S, M >= 1, d), got "
+                         f"{tuple(boundary.shape)}")
     dt, dev = boundary.dtype, boundary.device
     d = boundary.shape[-1]
     S = boundary.shape[:-2]
@@ -399,6 +405,50 @@ def _broadcast(fn: str, *shapes) -> tuple[int, ...]:
     return tuple(out)
 
 
+def _sdf_hessian(sdf: SDF, p: Tensor) -> tuple[Tensor, Tensor]:
+    """``∇f(p) (*B, d)`` and ``∇²f(p) (*B, d, d)`` (autograd through the analytic gradient, Eq. 37)."""
+    with torch.enable_grad():
+        x = p.detach().requires_grad_(True)
+        _, g = sdf_value_and_grad(sdf, x)
+        g = g.expand(*x.shape)
+        rows = [torch.autograd.grad(g[..., j].sum(), x, retain_graph=True)[0] for j in range(x.shape[-1])]
+    return g.detach(), torch.stack(rows, -2)
+
+
+def _second_order_ok(sdf1: SDF, sdf2: SDF, A: Tensor, t1: Tensor, t2: Tensor, r: Tensor, active: Tensor
+                     ) -> Tensor:
+    """``(*B,)`` bool: the Hessian of the Lagrangian of ``min ½‖r‖²`` s.t. ``f_1 = f_2 = 0`` is positive
+    semi-definite on the tangent space of the contours (second-order necessary condition of a minimum)."""
+    d = t1.shape[-1]
+    dt, dev = t1.dtype, t1.device
+    g1, H1 = _sdf_hessian(sdf1, t1)
+    g2, H2 = _sdf_hessian(sdf2, t2)
+    tiny = torch.finfo(dt).tiny
+    n1 = (g1 * g1).sum(-1).clamp_min(tiny)
+    n2 = (g2 * g2).sum(-1).clamp_min(tiny)
+    Atr = (A.mT @ r.unsqueeze(-1)).squeeze(-1)
+    mu1 = -(r * g1).sum(-1) / n1
+    mu2 = (Atr * g2).sum(-1) / n2
+    eye = torch.eye(d, dtype=dt, device=dev)
+    top = torch.cat([eye - mu1[..., None, None] * H1, -A], -1)
+    bot = torch.cat([-A.mT, A.mT @ A - mu2[..., None, None] * H2], -1)
+    HL = torch.cat([top, bot], -2)
+    HL = 0.5 * (HL + HL.mT)
+    z = torch.zeros_like(H1)
+    # N_12: projector onto the tangent space; the normal directions get a large positive stand-in
+    P1 = eye - g1.unsqueeze(-1) * g1.unsqueeze(-2) / n1[..., None, None]
+    P2 = eye - g2.unsqueeze(-1) * g2.unsqueeze(-2) / n2[..., None, None]
+    N = torch.cat([torch.cat([P1, z], -1), torch.cat([z, P2], -1)], -2)
+    scale = 1.0 + torch.linalg.matrix_norm(HL)
+    eye2 = torch.eye(2 * d, dtype=dt, device=dev)
+    M = N @ HL @ N + scale[..., None, None] * (eye2 - N)
+    M = 0.5 * (M + M.mT)
+    good = active & torch.isfinite(M).flatten(-2).all(-1)
+    M = torch.where(good[..., None, None], M, eye2)
+    lam = torch.linalg.eigvalsh(M)[..., 0]
+    return good & (lam >= -math.sqrt(torch.finfo(dt).eps) * scale)
+
+
 def closest_points_prioritized(sdf1: SDF, sdf2: SDF, A: Tensor, b: Tensor, *, p1_0: Tensor | None = None,
                                p2_0: Tensor | None = None, alpha1: float = 1.0, alpha2: float = 0.5,
                                tol: float = 1e-10, max_iter: int = 200) -> ClosestPointsResult:
@@ -411,10 +461,16 @@ def closest_points_prioritized(sdf1: SDF, sdf2: SDF, A: Tensor, b: Tensor, *, p1
 
     ``converged`` where, at the returned points, ``|f_1|, |f_2| ≤ tol`` and the projected gradient of the
     secondary task ``‖N_12 J_3ᵀ (A t_2 + b - t_1)‖ ≤ tol`` (reported as ``residual``, the max of the three):
-    the points are on the contours and the segment between them is normal to both (a local minimum of the
-    distance for shapes apart from each other).  ``reason``: ``CONVERGED``, ``MAX_ITERATIONS``,
-    ``NONFINITE_INPUT`` or ``DIVERGED`` (non-finite values at an iterate; that element stops there).
-    Arguments as :func:`closest_points`.
+    the points are on the contours and the segment between them is normal to both — a stationary pair of
+    ``½‖A t_2 + b - t_1‖²`` subject to ``f_1 = f_2 = 0`` — *and* the second-order condition of a local minimum
+    holds there: the Hessian of the Lagrangian
+    ``[[I, -A], [-Aᵀ, AᵀA]] - blkdiag(μ_1 ∇²f_1, μ_2 ∇²f_2)`` (multipliers ``μ_1 = -rᵀ∇f_1/‖∇f_1‖²``,
+    ``μ_2 = rᵀA∇f_2/‖∇f_2‖²``, ``r = A t_2 + b - t_1``; ``∇²f`` by autograd through the basis) is positive
+    semi-definite on the tangent space of the two contours (eigenvalues ``≥ -√eps (1 + ‖·‖)``).  A
+    stationary pair that fails it (a saddle or a maximum of the distance, e.g. two far sides facing away) is
+    reported ``NOT_A_MINIMUM`` (not converged).  ``reason``: ``CONVERGED``, ``NOT_A_MINIMUM``,
+    ``MAX_ITERATIONS``, ``NONFINITE_INPUT`` or ``DIVERGED`` (non-finite values at an iterate; that element
+    stops there).  Arguments as :func:`closest_points`.
     """
     fn = "closest_points_prioritized"
     d, batch, b, p1, p2 = _pair_inputs(sdf1, sdf2, A, b, p1_0, p2_0, fn)
@@ -467,6 +523,10 @@ def closest_points_prioritized(sdf1: SDF, sdf2: SDF, A: Tensor, b: Tensor, *, p1
     f1 = sdf_value(sdf1, t1).expand(batch)
     f2 = sdf_value(sdf2, t2).expand(batch)
     r = (Ab @ t2.unsqueeze(-1)).squeeze(-1) + b - t1
+    stat = reason == int(Reason.CONVERGED)
+    if bool(stat.any()):
+        second = _second_order_ok(sdf1, sdf2, Ab, t1, t2, r, stat)
+        reason = torch.where(stat & ~second, int(Reason.NOT_A_MINIMUM), reason)
     return ClosestPointsResult(p1=t1, p2=t2, p2_in_1=t1 + r, distance=torch.linalg.vector_norm(r, dim=-1),
                                f1=f1, f2=f2, residual=resid, converged=reason == int(Reason.CONVERGED),
                                iterations=iterations, reason=reason)

@@ -274,3 +274,45 @@ def test_time_invariant_transfer_matrices_equal_the_time_varying_recursion(batch
                                     c.expand(*batch, T, 4), T)
     for a, b in zip(fast, slow):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("which", ["Psi", "Qbig", "Rbig", "Rbig_x0"])
+def test_batched_extra_matrices_broadcast_with_an_unbatched_problem(which):
+    g = torch.Generator().manual_seed(7)
+    p = random_problem(g, b=(), T=4, cross=False)
+    T, n, m = p.T, p.n, p.m
+    if which == "Psi":
+        M = torch.randn(3, T * m, 2, dtype=D, generator=g)
+    elif which == "Qbig":
+        M = spd(3, k=(T + 1) * n, g=g)
+    else:
+        M = spd(3, k=T * m, g=g)
+    key = which.split("_")[0]
+    kw = dict(optimize_x0=True) if which == "Rbig_x0" else {}
+    if which == "Rbig_x0":  # a well-posed x_0 cost
+        p = dataclasses.replace(p, cost=dataclasses.replace(p.cost, Q=p.cost.Q + torch.eye(n, dtype=D)))
+    sol = lifted.solve_lifted(p, **{key: M}, **kw)
+    assert sol.u.shape == (3, T, m) and sol.x.shape == (3, T + 1, n) and sol.x0.shape == (3, n)
+    assert sol.status.reason.shape == (3,) and sol.cost.shape == (3,)
+    for i in range(3):
+        one = lifted.solve_lifted(p, **{key: M[i]}, **kw)
+        torch.testing.assert_close(sol.u[i], one.u)
+        torch.testing.assert_close(sol.cost[i], one.cost)
+    with pytest.raises(ValueError, match=key):
+        lifted.solve_lifted(dataclasses.replace(p, x0=p.x0.expand(2, n)), **{key: M}, **kw)
+
+
+def test_transfer_matrices_zero_horizon():
+    g = torch.Generator().manual_seed(8)
+    A = torch.randn(2, 1, 3, 3, dtype=D, generator=g)
+    B = torch.randn(1, 3, 2, dtype=D, generator=g)
+    c = torch.randn(1, 3, dtype=D, generator=g)
+    Sx, Su, sc = lifted.transfer_matrices(A, B, c, 0)
+    torch.testing.assert_close(Sx, torch.eye(3, dtype=D).expand(2, 3, 3))
+    assert Su.shape == (2, 3, 0)
+    torch.testing.assert_close(sc, torch.zeros(2, 3, dtype=D))
+    Sx, Su, sc = lifted.transfer_matrices(A.expand(2, 4, 3, 3), B, None, 0)  # time-varying path
+    torch.testing.assert_close(Sx, torch.eye(3, dtype=D).expand(2, 3, 3))
+    assert Su.shape == (2, 3, 0) and sc is None
+    with pytest.raises(ValueError, match="'T'"):
+        lifted.transfer_matrices(A, B, c, -1)

@@ -256,6 +256,46 @@ def test_meeting_at_different_times_is_stationary_for_the_brute_force_cost():
         lqt_cookbook.meeting_lqt(x0[:1], tg[:1], T, 0.1)
 
 
+@pytest.mark.parametrize("times", [12, [12, 12], [12, 6], [6, 12]])
+def test_meeting_at_the_horizon_penalizes_the_gap_itself(times):
+    """A meeting time equal to T (where the reference holds the targets) must still penalize p_i - p_j:
+    the brute-force cost (positions from a rollout) is minimal at the solution and equals ``res.cost``."""
+    x0 = torch.tensor([[0.0, 0, 0, 0], [1.0, 0, 0, 0]], dtype=D)
+    tg = torch.tensor([[0.0, 1], [1.0, 1]], dtype=D)
+    T = 12
+    tt = [times] * 2 if isinstance(times, int) else times
+    res = lqt_cookbook.meeting_lqt(x0, tg, T, 0.1, meet_times=times)
+    p = res.problem
+
+    def f(uv):
+        u = uv.reshape(T, 4)
+        x = rollout(p.dynamics, p.x0, u)
+        pos = x.reshape(T + 1, 2, 4)[..., :2]
+        end = x[-1].reshape(2, 4) - torch.cat([tg, torch.zeros_like(tg)], -1)
+        return (1e3 * (pos[tt[0], 0] - pos[tt[1], 1]).pow(2).sum() + 1e3 * end.pow(2).sum()
+                + 1e-2 * u.pow(2).sum())
+
+    # the exact minimizer of the brute-force quadratic (Newton from zero)
+    z = torch.zeros(T * 4, dtype=D)
+    H = torch.func.hessian(f)(z)
+    u_star = z - torch.linalg.solve(H, torch.func.grad(f)(z))
+    torch.testing.assert_close(res.solution.u.flatten(), u_star, atol=1e-8, rtol=0)
+    torch.testing.assert_close(res.cost, f(u_star))
+    # the gap at the meeting is pulled in (was ignored: 1.0)
+    gap = (res.positions[tt[0], 0] - res.positions[tt[1], 1]).norm()
+    assert gap < 0.5
+
+
+def test_meeting_at_time_zero_is_rejected():
+    x0 = torch.tensor([[0.0, 0, 0, 0], [1.0, 0, 0, 0]], dtype=D)
+    tg = torch.tensor([[0.0, 1], [1.0, 1]], dtype=D)
+    with pytest.raises(ValueError, match="'meet_times'"):
+        lqt_cookbook.meeting_lqt(x0, tg, 10, 0.1, meet_times=0)
+    with pytest.raises(ValueError, match="'meet_times'"):
+        lqt_cookbook.meeting_lqt(x0, tg, 10, 0.1, meet_times=[0, 0])
+    lqt_cookbook.meeting_lqt(x0, tg, 10, 0.1, meet_times=[0, 5])  # one agent goes where the other started
+
+
 # ---------------------------------------------------------------------------------------------- tennis
 
 

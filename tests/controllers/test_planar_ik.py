@@ -322,3 +322,57 @@ def test_task_priority_ik_batched_equals_loop_and_float32():
                            tol_secondary=1e-4)
     assert r32.q.dtype == torch.float32 and r32.converged.all()
     torch.testing.assert_close(r32.q, res.q.float(), atol=1e-3, rtol=0)
+
+
+def test_nonfinite_element_gives_nan_only_there():
+    g = torch.Generator().manual_seed(5)
+    J = torch.randn(4, 2, 3, dtype=torch.float64, generator=g)
+    Jn = J.clone()
+    Jn[2, 1, 0] = math.nan
+    f = torch.randn(4, 2, dtype=torch.float64, generator=g)
+    for fn in (damped_pinv, nullspace_projector):
+        out = fn(Jn)
+        assert out[2].isnan().all()
+        torch.testing.assert_close(out[[0, 1, 3]], fn(J[[0, 1, 3]]))
+    J2 = torch.randn(4, 3, 3, dtype=torch.float64, generator=g)
+    f2 = torch.randn(4, 3, dtype=torch.float64, generator=g)
+    step = task_priority_ik_step(Jn, f, J2, f2)
+    assert step[2].isnan().all()
+    keep = [0, 1, 3]
+    torch.testing.assert_close(step[keep], task_priority_ik_step(J[keep], f[keep], J2[keep], f2[keep]))
+
+
+def test_planar_ik_escapes_the_zero_gradient_home_configuration():
+    """From q0 = 0 (stretched arm) J^T f = 0 exactly for targets on the x axis: a saddle if reachable."""
+    d = torch.float64
+    tgt = torch.tensor([[1.0, 0.0], [0.0, 0.0], [0.5, 0.0], [3.0, 0.0]], dtype=d)  # last: out of reach
+    r = planar_ik([1.0, 1.0], tgt, torch.zeros(2, dtype=d))
+    assert r.converged[:3].all(), (r.reason, r.residual)
+    torch.testing.assert_close(planar_fk(r.q[:3], [1.0, 1.0])[:, :2], tgt[:3], atol=1e-8, rtol=0)
+    assert r.reason[3].item() == int(Reason.STALLED)
+    assert abs(r.residual[3].item() - 1.0) < 1e-8  # the closest point of the workspace, 2 along x
+    # batched == per element
+    for i in range(4):
+        ri = planar_ik([1.0, 1.0], tgt[i], torch.zeros(2, dtype=d))
+        assert ri.reason.item() == r.reason[i].item()
+
+
+def test_default_tolerances_follow_the_dtype():
+    L = [1.0, 0.7, 0.4]
+    g = torch.Generator().manual_seed(3)
+    tgt = planar_fk(torch.randn(16, 3, dtype=torch.float64, generator=g), L)[:, :2]
+    r64 = planar_ik(L, tgt, torch.full((3,), 0.3, dtype=torch.float64))
+    r32 = planar_ik(L, tgt.float(), torch.full((3,), 0.3))
+    assert r64.converged.all() and r32.converged.all(), (r64.reason, r32.reason)
+    assert (r64.residual <= 1e-9).all()
+    assert (r32.pos_err <= 1e-4).all()
+    # the prioritized solver: float32 converges where float64 does
+    L4 = [1.0, 0.7, 0.4, 0.3]
+    tg4 = planar_fk(torch.randn(8, 4, dtype=torch.float64, generator=g), L4)[:, :2]
+    qref = 0.3 * torch.randn(8, 4, dtype=torch.float64, generator=g)
+    p64 = task_priority_ik(L4, tg4, torch.full((4,), 0.1, dtype=torch.float64), qref)
+    p32 = task_priority_ik(L4, tg4.float(), torch.full((4,), 0.1), qref.float())
+    assert p64.converged.any()
+    assert (p32.converged | ~p64.converged).all(), (p64.reason, p32.reason)
+    ok = p64.converged
+    torch.testing.assert_close(p32.q[ok].double(), p64.q[ok], atol=1e-3, rtol=0)

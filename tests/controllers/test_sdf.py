@@ -271,3 +271,61 @@ def test_sdf_constructor_checks():
     with pytest.raises(ValueError, match="'p'"):
         s4 = sdf.SDF(w, lo, hi, functools.partial(basis.bernstein_deriv, K=4))
         sdf.sdf_value(s4, torch.zeros(3, dtype=D))
+
+
+def _unit_circle_field():
+    """The circle of radius 0.5 (fitted from contour points with the eikonal term)."""
+    return sdf.fit_sdf(_circle([0.0, 0.0], 0.5, M=40), LO, HI).sdf
+
+
+def test_prioritized_closest_points_reject_a_saddle_and_keep_the_minimum():
+    """Two copies of one circle, 2 apart: antipodal far-side points are a stationary pair (the segment is
+    normal to both contours) at distance 2, but a saddle of the distance; the minimum is about 1."""
+    s = _unit_circle_field()
+    A, b = torch.eye(2, dtype=D), torch.tensor([2.0, 0.0], dtype=D)
+    x = torch.linspace(-0.9, -0.1, 2001, dtype=D)  # the contour's left crossing of the x axis, by bisection
+    v = sdf.sdf_value(s, torch.stack([x, torch.zeros_like(x)], -1))
+    xl = x[torch.argmin(v.abs())].item()
+    lo, hi = xl - 1e-3, xl + 1e-3
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        fm = sdf.sdf_value(s, torch.tensor([mid, 0.0], dtype=D))
+        lo, hi = (mid, hi) if fm > 0 else (lo, mid)
+    xl = 0.5 * (lo + hi)
+    pl = torch.tensor([xl, 0.0], dtype=D)
+    starts1 = torch.stack([pl, pl, pl.neg()])
+    starts2 = torch.stack([pl, pl.neg(), pl])  # saddle; maximum (far sides facing away); the minimum side
+    r = sdf.closest_points_prioritized(s, s, A, b, p1_0=starts1, p2_0=starts2, tol=1e-9)
+    # every element is a stationary pair (first order) ...
+    assert (r.residual <= 1e-9).all(), r.residual
+    # ... but only the last one is a minimum
+    assert r.reason.tolist()[:2] == [int(Reason.NOT_A_MINIMUM)] * 2
+    assert not r.converged[:2].any()
+    # the minimum: found from the default start and from the near-side start, certified
+    r0 = sdf.closest_points_prioritized(s, s, A, b, tol=1e-9)
+    assert r0.converged.item() and r.converged[2].item()
+    assert abs(r0.distance.item() - (2 + 2 * xl)) < 1e-8 and r0.distance.item() < r.distance[0].item()
+    # independent check of the second-order claim: along the contours (angles a1, a2 of the points around
+    # their circles, the contour being nearly circular) the distance has a negative curvature at the saddle
+    rad = -xl
+
+    def dist(a1, a2):
+        p1 = rad * torch.stack([torch.cos(math.pi + a1), torch.sin(math.pi + a1)])
+        p2 = b + rad * torch.stack([torch.cos(math.pi + a2), torch.sin(math.pi + a2)])
+        return (p2 - p1).norm()
+
+    h = 1e-3
+    z = torch.zeros((), dtype=D)
+    curv = (dist(z + h, z) - 2 * dist(z, z) + dist(z - h, z)) / h ** 2
+    assert curv < 0
+
+
+def test_fit_sdf_rejects_no_boundary_points_and_float32_converges():
+    with pytest.raises(ValueError, match="'boundary'"):
+        sdf.fit_sdf(torch.zeros(0, 2, dtype=D), LO, HI)
+    c = _circle([0.0, 0.0], 0.5, M=40)
+    r64 = sdf.fit_sdf(c, LO, HI)
+    r32 = sdf.fit_sdf(c.float(), LO, HI)
+    assert r64.converged.item() and r32.converged.item(), (r64.reason, r32.reason)
+    assert r32.sdf.w.dtype == torch.float32
+    assert abs(r32.cost.item() - r64.cost.item()) < 1e-4 * max(1.0, r64.cost.item())
