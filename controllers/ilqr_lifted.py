@@ -233,6 +233,39 @@ def _residual(g: Tensor, scale: Tensor) -> Tensor:
     return torch.where(g == 0, torch.zeros((), dtype=g.dtype, device=g.device), r).amax(-1)
 
 
+def _newton_step(g: Tensor, H: Tensor, mu: Tensor, done: Tensor) -> tuple[Tensor, Tensor]:
+    """``Δz = -(H + μ I)⁻¹ g`` and where it exists (positive definite, element not done); zero elsewhere."""
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
+    L, info = torch.linalg.cholesky_ex(H + mu[..., None, None] * eye)
+    ok = (info == 0) & ~done
+    L = torch.where(ok[..., None, None], L, eye)
+    dz = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
+    return torch.where(ok[..., None], dz, torch.zeros((), dtype=H.dtype, device=H.device)), ok
+
+
+def _line_search(model: _Model, alphas: Tensor, dz: Tensor, ok: Tensor, x0: Tensor, w: Tensor, x: Tensor,
+                 u: Tensor, c: Tensor, free_x0: bool):
+    """Algorithm 1 with all step sizes ``α`` rolled out at once: per element the largest ``α`` that lowers
+    the cost is taken.  Returns ``(take, first, x0, w, x, u, c)``: whether a step was taken, the index of
+    its ``α`` (0: the full step), and the state after it."""
+    bs, n = model.bs, model.p.n
+    a = alphas.reshape(-1, *[1] * (len(bs) + 1))
+    z = torch.cat([x0, w], -1) if free_x0 else w
+    zc = z + a * dz
+    x0c, wc = (zc[..., :n], zc[..., n:]) if free_x0 else (x0.expand(len(alphas), *bs, n), zc)
+    cc, xc, uc = model.cost(x0c, wc)
+    better = (cc < c) & ok & torch.isfinite(cc)
+    take = better.any(0)
+    first = torch.where(take, better.to(torch.int64).argmax(0), 0)
+
+    def pick(v: Tensor, old: Tensor) -> Tensor:
+        idx = first.reshape(1, *bs, *[1] * (v.dim() - 1 - len(bs))).expand(1, *v.shape[1:])
+        chosen = torch.gather(v, 0, idx)[0]
+        return torch.where(take.reshape(take.shape + (1,) * (chosen.dim() - take.dim())), chosen, old)
+
+    return take, first, pick(x0c, x0), pick(wc, w), pick(xc, x), pick(uc, u), pick(cc, c)
+
+
 @torch.no_grad()
 def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: Tensor | None = None,
                 w_init: Tensor | None = None, max_iter: int = 100, tol: float | None = None,
@@ -305,31 +338,9 @@ def ilqr_lifted(problem: ILQRProblem, Psi: Tensor | None = None, *, x0_weight: T
         done = done | certified
         if bool(done.all()):
             break
-        eye = torch.eye(H.shape[-1], **kw)
-        L, info = torch.linalg.cholesky_ex(H + mu[..., None, None] * eye)
-        ok = (info == 0) & ~done
-        L = torch.where(ok[..., None, None], L, eye)
-        dz = -torch.cholesky_solve(g.unsqueeze(-1), L).squeeze(-1)
-        dz = torch.where(ok[..., None], dz, torch.zeros((), **kw))
-        # all step sizes at once (Algorithm 1): candidates (S, *B, ...)
-        a = alphas.reshape(-1, *[1] * (len(bs) + 1))
-        z = torch.cat([x0, w], -1) if free_x0 else w
-        zc = z + a * dz
-        x0c, wc = (zc[..., :n], zc[..., n:]) if free_x0 else (x0.expand(len(alphas), *bs, n), zc)
-        cc, xc, uc = model.cost(x0c, wc)
-        better = (cc < c) & ok & torch.isfinite(cc)
-        first = torch.where(better.any(0), better.to(torch.int64).argmax(0), 0)
-        take = better.any(0)
-        def pick(v: Tensor, first: Tensor = first) -> Tensor:
-            idx = first.reshape(1, *bs, *[1] * (v.dim() - 1 - len(bs))).expand(1, *v.shape[1:])
-            return torch.gather(v, 0, idx)[0]
-
+        dz, ok = _newton_step(g, H, mu, done)
         iters = iters + (~done).to(torch.int64)
-        x0 = torch.where(take[..., None], pick(x0c), x0)
-        w = torch.where(take[..., None], pick(wc), w)
-        x = torch.where(take[..., None, None], pick(xc), x)
-        u = torch.where(take[..., None, None], pick(uc), u)
-        c = torch.where(take, pick(cc), c)
+        take, first, x0, w, x, u, c = _line_search(model, alphas, dz, ok, x0, w, x, u, c, free_x0)
         full = take & (first == 0)
         grown = torch.where(done, mu, (mu * 10).clamp_min(1e-6))
         mu = torch.where(take, torch.where(full, mu / 10, mu), grown)
