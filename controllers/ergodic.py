@@ -37,6 +37,8 @@ from typing import NamedTuple
 
 import torch
 
+from torchlie._batch import check_same_device
+
 __all__ = [
     "fourier_indices",
     "fourier_basis",
@@ -103,18 +105,6 @@ def _pos_float(v, name: str, fn: str, allow_zero: bool = False) -> float:
         what = "a finite float >= 0" if allow_zero else "a finite float > 0"
         raise ValueError(f"{fn}: argument '{name}' must be {what}, got {v!r}")
     return float(v)
-
-
-def _same(fn: str, **ts: torch.Tensor) -> None:
-    items = list(ts.items())
-    k0, t0 = items[0]
-    for k, t in items[1:]:
-        if t.dtype != t0.dtype:
-            raise TypeError(f"{fn}: arguments '{k0}' and '{k}' have different dtypes ({t0.dtype} vs "
-                            f"{t.dtype}); cast explicitly (nothing is cast silently)")
-        if t.device != t0.device:
-            raise ValueError(f"{fn}: arguments '{k0}' and '{k}' are on different devices ({t0.device} vs "
-                             f"{t.device})")
 
 
 def _check_coeffs(w: torch.Tensor, name: str, fn: str, n_coef: int) -> None:
@@ -212,7 +202,7 @@ def _check_gmm(weights, means, covariances, fn: str) -> int:
     if weights.shape[-1] != J:
         raise ValueError(f"{fn}: argument 'weights' must be (*B, J) with J = {J} (from 'means'), got "
                          f"{tuple(weights.shape)}")
-    _same(fn, means=means, weights=weights, covariances=covariances)
+    check_same_device(fn, means=means, weights=weights, covariances=covariances)
     return D
 
 
@@ -262,7 +252,7 @@ def gmm_density(x: torch.Tensor, weights: torch.Tensor, means: torch.Tensor,
     x = _tensor(x, "x", fn, 2)
     if x.shape[-1] != D:
         raise ValueError(f"{fn}: argument 'x' must be (*B, M, D) with D = {D}, got {tuple(x.shape)}")
-    _same(fn, x=x, means=means)
+    check_same_device(fn, x=x, means=means)
     chol = torch.linalg.cholesky(covariances)                          # (*B, J, D, D)
     diff = x[..., :, None, :] - means[..., None, :, :]                 # (*B, M, J, D)
     shape = torch.broadcast_shapes(diff.shape[:-1], chol.shape[:-3] + (1,) + chol.shape[-3:-2])
@@ -301,7 +291,7 @@ def ergodic_metric(w: torch.Tensor, w_hat: torch.Tensor, weights: torch.Tensor) 
     fn = "ergodic_metric"
     for n, v in (("w", w), ("w_hat", w_hat), ("weights", weights)):
         _tensor(v, n, fn)
-    _same(fn, w=w, w_hat=w_hat, weights=weights)
+    check_same_device(fn, w=w, w_hat=w_hat, weights=weights)
     if not (w.shape[-1] == w_hat.shape[-1] == weights.shape[-1]):
         raise ValueError(f"{fn}: 'w', 'w_hat', 'weights' must share the last dim K^D, got "
                          f"{tuple(w.shape)}, {tuple(w_hat.shape)}, {tuple(weights.shape)}")
@@ -377,7 +367,7 @@ def smc_control(x: torch.Tensor, w: torch.Tensor, w_hat: torch.Tensor, weights: 
     for n, v in (("w", w), ("w_hat", w_hat), ("weights", weights)):
         _tensor(v, n, fn)
         _check_coeffs(v, n, fn, K ** D)
-    _same(fn, x=x, w=w, w_hat=w_hat, weights=weights)
+    check_same_device(fn, x=x, w=w, w_hat=w_hat, weights=weights)
     g = fourier_basis_grad(x, n_basis=K, length=ell)                   # (*B, N, K^D, D)
     r = (weights * (w - w_hat))[..., None, :, None]                     # (*B, 1, K^D, 1)
     u_tilde = -(g * r).sum(-2)
@@ -509,7 +499,7 @@ def smc_plan(x0: torch.Tensor, u_init: torch.Tensor, w_hat: torch.Tensor, *, dt:
     _check_coeffs(w_hat, "w_hat", fn, K ** D)
     if weights is None:
         weights = sobolev_weights(D, K, dtype=x0.dtype, device=x0.device)
-    _same(fn, x0=x0, u_init=u, w_hat=w_hat, weights=weights)
+    check_same_device(fn, x0=x0, u_init=u, w_hat=w_hat, weights=weights)
     T = u.shape[-3]
     batch = torch.broadcast_shapes(x0.shape[:-2], u.shape[:-3], w_hat.shape[:-1])
     x0 = x0.expand(*batch, N, D)
@@ -689,7 +679,7 @@ def heat_step(u: torch.Tensor, source: torch.Tensor, grid: HeatGrid, *, alpha: f
     dt = _pos_float(dt, "dt", fn)
     u = grid.check_field(u, "u", fn)
     source = grid.check_field(source, "source", fn)
-    _same(fn, u=u, source=source)
+    check_same_device(fn, u=u, source=source)
     b = _pos_float(cooling, "cooling", fn, allow_zero=True)
     r = dt * (2 * grid.n_dims * a / grid.spacing ** 2 + b)
     if r > 1.0 + 1e-12:
@@ -708,7 +698,7 @@ def hedac_source(target: torch.Tensor, coverage: torch.Tensor, grid: HeatGrid) -
     fn = "hedac_source"
     target = grid.check_field(target, "target", fn)
     coverage = grid.check_field(coverage, "coverage", fn)
-    _same(fn, target=target, coverage=coverage)
+    check_same_device(fn, target=target, coverage=coverage)
     return grid.normalize(torch.clamp(target - coverage, min=0.0) ** 2)
 
 
@@ -750,7 +740,7 @@ def field_gradient_at(u: torch.Tensor, x: torch.Tensor, grid: HeatGrid) -> torch
     D, G, h = grid.n_dims, grid.n_cells, grid.spacing
     if x.shape[-1] != D:
         raise ValueError(f"{fn}: argument 'x' must be (*B, N, D) with D = {D}, got {tuple(x.shape)}")
-    _same(fn, u=u, x=x)
+    check_same_device(fn, u=u, x=x)
     dims = tuple(range(u.dim() - D, u.dim()))
     grads = torch.stack(torch.gradient(u, spacing=h, dim=dims), -1)   # (*B, G..G, D)
     flat = grads.flatten(u.dim() - D, u.dim() - 1)                     # (*B, M, D)
@@ -809,7 +799,7 @@ def hedac_step(state: HEDACState, target: torch.Tensor, grid: HeatGrid, *, alpha
     a = _pos_float(alpha, "alpha", fn)
     umax = _pos_float(u_max, "u_max", fn)
     target = grid.check_field(target, "target", fn)
-    _same(fn, x=state.x, target=target)
+    check_same_device(fn, x=state.x, target=target)
     b = _pos_float(cooling, "cooling", fn, allow_zero=True)
     if n_substeps is None:
         n_substeps = max(1, math.ceil(dt * (2 * grid.n_dims * a / grid.spacing ** 2 + b) / 0.95))

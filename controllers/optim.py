@@ -366,6 +366,15 @@ def _cost_fn(f, fn: str, x0: Tensor):
 # --------------------------------------------------------------------------------------------------
 
 
+
+def _check_second_order(x0, line_search, tol, max_iter, alpha_min, fn: str):
+    """The arguments Newton and Gauss–Newton share: ``(x0, tol, max_iter, alpha_min)`` checked."""
+    x0 = _check_x0(x0, fn)
+    if not isinstance(line_search, bool):
+        raise TypeError(f"{fn}: argument 'line_search' must be a bool, got {type(line_search).__name__}")
+    alpha_min = _positive(alpha_min, "alpha_min", fn, upper=1.0)
+    return x0, _check_tol(tol, fn), _check_max_iter(max_iter, fn), alpha_min
+
 def gradient_descent(f: Callable[[Tensor], Tensor], x0: Tensor, *, step_size: float = 1.0,
                      line_search: bool = True, alpha_min: float = 1e-10, tol: float | None = None,
                      max_iter: int = 1000, gradient: Callable[[Tensor], Tensor] | None = None) -> OptimResult:
@@ -446,12 +455,7 @@ def newton(f: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float | None = Non
     _check_callable(f, "f", fn)
     _check_callable(gradient, "gradient", fn, optional=True)
     _check_callable(hessian, "hessian", fn, optional=True)
-    x0 = _check_x0(x0, fn)
-    if not isinstance(line_search, bool):
-        raise TypeError(f"{fn}: argument 'line_search' must be a bool, got {type(line_search).__name__}")
-    tol = _check_tol(tol, fn)
-    max_iter = _check_max_iter(max_iter, fn)
-    alpha_min = _positive(alpha_min, "alpha_min", fn, upper=1.0)
+    x0, tol, max_iter, alpha_min = _check_second_order(x0, line_search, tol, max_iter, alpha_min, fn)
     min_curvature = _positive(min_curvature, "min_curvature", fn)
     _cost_fn(f, fn, x0)
     n = x0.shape[-1]
@@ -516,12 +520,7 @@ def gauss_newton(residual: Callable[[Tensor], Tensor], x0: Tensor, *, tol: float
     fn = "gauss_newton"
     _check_callable(residual, "residual", fn)
     _check_callable(jacobian, "jacobian", fn, optional=True)
-    x0 = _check_x0(x0, fn)
-    if not isinstance(line_search, bool):
-        raise TypeError(f"{fn}: argument 'line_search' must be a bool, got {type(line_search).__name__}")
-    tol = _check_tol(tol, fn)
-    max_iter = _check_max_iter(max_iter, fn)
-    alpha_min = _positive(alpha_min, "alpha_min", fn, upper=1.0)
+    x0, tol, max_iter, alpha_min = _check_second_order(x0, line_search, tol, max_iter, alpha_min, fn)
     damping = _positive(damping, "damping", fn, allow_zero=True)
     f0 = residual(x0)
     if not isinstance(f0, Tensor) or f0.dim() != x0.dim() or f0.shape[:-1] != x0.shape[:-1]:
