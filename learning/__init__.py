@@ -7,6 +7,16 @@ imported only by :mod:`learning.sb3`, :mod:`learning.mpc_policy` and (inside its
 """
 
 from learning.bc import Demos, bc_study, collect_demos, train_mlp_policy, train_mpc_cost
+from learning.demos import (
+    LETTERS,
+    Demonstrations,
+    expert_demos,
+    handwriting,
+    letter_stroke,
+    mpc_demos,
+    spatial_noise,
+    time_warp,
+)
 from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
 from learning.evaluate import EvalResult, evaluate
 from learning.policies import MPCExpert, as_policy, task_expert
@@ -15,4 +25,6 @@ from learning.vector import TaskVectorEnv
 
 __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "CartPoleSwingUp",
            "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert", "task_expert",
-           "Demos", "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study"]
+           "Demos", "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study",
+           "Demonstrations", "expert_demos", "mpc_demos", "time_warp", "spatial_noise", "handwriting",
+           "letter_stroke", "LETTERS"]
