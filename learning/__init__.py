@@ -20,6 +20,19 @@ from learning.demos import (
 from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
 from learning.evaluate import EvalResult, evaluate
 from learning.policies import MPCExpert, as_policy, task_expert
+from learning.primitives import (
+    DMP,
+    ProMP,
+    Recovery,
+    Reproduction,
+    Tracking,
+    fit_dmp,
+    fit_promp,
+    integrator_chain,
+    perturbation_recovery,
+    reproduction_error,
+    via_point_error,
+)
 from learning.registration import env_id, register_envs
 from learning.vector import TaskVectorEnv
 
@@ -27,4 +40,5 @@ __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "Cart
            "register_envs", "env_id", "evaluate", "EvalResult", "as_policy", "MPCExpert", "task_expert",
            "Demos", "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study",
            "Demonstrations", "expert_demos", "mpc_demos", "time_warp", "spatial_noise", "handwriting",
-           "letter_stroke", "LETTERS"]
+           "letter_stroke", "LETTERS", "DMP", "fit_dmp", "Reproduction", "ProMP", "fit_promp", "Tracking",
+           "integrator_chain", "reproduction_error", "via_point_error", "perturbation_recovery", "Recovery"]
