@@ -47,6 +47,8 @@ from __future__ import annotations
 import json
 import math
 import re
+import zipfile
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -83,24 +85,38 @@ def _first_nonfinite(v: Tensor) -> tuple[int, int] | None:
     return i, t
 
 
-def _positive_float(v: Any, name: str, own: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer, Tensor)):
-        raise TypeError(f"{own}: '{name}' must be a positive number, got {type(v).__name__}")
+def _real_dtype(v: Tensor | np.ndarray) -> bool:
+    """Whether a tensor / array holds real numbers (integers or floating; not bool, complex, str, object)."""
     if isinstance(v, Tensor):
-        if v.numel() != 1:
-            raise ValueError(f"{own}: '{name}' must be a single number, got a tensor of shape "
+        return v.dtype != torch.bool and not v.is_complex()
+    return (v.dtype != np.bool_ and np.issubdtype(v.dtype, np.number)
+            and not np.issubdtype(v.dtype, np.complexfloating))
+
+
+def _real_scalar(v: Any, name: str, own: str, what: str) -> float:
+    """``v`` as a Python float: a real number (int, float, numpy scalar, or a one-element real tensor /
+    array); bools, strings, complex and non-numeric arrays are a TypeError naming ``name``."""
+    if isinstance(v, (Tensor, np.ndarray)):
+        if not _real_dtype(v):
+            raise TypeError(f"{own}: '{name}' must be {what}, got an array of dtype {v.dtype}")
+        if int(np.prod(v.shape)) != 1:
+            raise ValueError(f"{own}: '{name}' must be a single number, got an array of shape "
                              f"{tuple(v.shape)}")
-        v = v.item()
-    v = float(v)
+        return float(v.item())
+    if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
+        raise TypeError(f"{own}: '{name}' must be {what}, got {type(v).__name__}")
+    return float(v)
+
+
+def _positive_float(v: Any, name: str, own: str) -> float:
+    v = _real_scalar(v, name, own, "a positive number")
     if not (math.isfinite(v) and v > 0):
         raise ValueError(f"{own}: '{name}' must be positive and finite, got {v!r}")
     return v
 
 
 def _nonneg_float(v: Any, name: str, own: str) -> float:
-    if isinstance(v, bool) or not isinstance(v, (int, float, np.floating, np.integer)):
-        raise TypeError(f"{own}: '{name}' must be a non-negative number, got {type(v).__name__}")
-    v = float(v)
+    v = _real_scalar(v, name, own, "a non-negative number")
     if not (math.isfinite(v) and v >= 0):
         raise ValueError(f"{own}: '{name}' must be non-negative and finite, got {v!r}")
     return v
@@ -130,6 +146,16 @@ def _interp(y: Tensor, s_old: Tensor, s_new: Tensor) -> Tensor:
     return torch.lerp(y0, y1, w)  # exact at both ends of an interval (w = 0 and w = 1)
 
 
+def _merge_strict(computed: dict, user: Mapping, what: str, own: str) -> dict:
+    """``computed`` and the user's entries; a user entry under a computed name is a ValueError (the
+    computed value is never silently replaced, nor the user's dropped)."""
+    clash = sorted(set(computed) & set(user))
+    if clash:
+        raise ValueError(f"{own}: {what} name(s) {clash} are computed here; rename the user's {what}(s) "
+                         f"(reserved: {sorted(computed)})")
+    return {**computed, **user}
+
+
 def _history(meta: Mapping[str, Any], entry: dict) -> dict:
     out = dict(meta)
     out["history"] = [*out.get("history", []), entry]
@@ -140,13 +166,84 @@ def _as_array(a: Any, what: str, own: str) -> Tensor:
     if isinstance(a, Tensor):
         t = a
     else:
-        arr = np.asarray(a)
+        try:
+            arr = np.asarray(a)
+        except ValueError as e:  # ragged nested lists ("inhomogeneous shape")
+            raise ValueError(f"{own}: {what} is not a rectangular numeric array: {e}") from None
         if arr.dtype == object or not (np.issubdtype(arr.dtype, np.number) or arr.dtype == np.bool_):
             raise TypeError(f"{own}: {what} must be a numeric array, got dtype {arr.dtype}")
         t = torch.from_numpy(np.array(arr, copy=True))
     if t.is_complex():
         raise TypeError(f"{own}: {what} must be real, got {t.dtype}")
     return t
+
+
+# --------------------------------------------------------------------------------------------------
+# the .npz file
+# --------------------------------------------------------------------------------------------------
+
+_NPZ_ERRORS = (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error)
+
+
+def _open_npz(path: str | Path, own: str) -> np.lib.npyio.NpzFile:
+    """``numpy.load(path, allow_pickle=False)`` as an open ``.npz`` archive; anything else (a plain
+    ``.npy``, a broken or truncated zip, a text file) is a ValueError naming ``path``."""
+    try:
+        z = np.load(Path(path), allow_pickle=False)
+    except FileNotFoundError:
+        raise
+    except _NPZ_ERRORS as e:
+        raise ValueError(f"{own}: {path} is not a {FORMAT} file (not a readable .npz archive: {e})") from None
+    if not isinstance(z, np.lib.npyio.NpzFile):
+        raise ValueError(f"{own}: {path} is not a {FORMAT} file (a plain .npy array, not an .npz archive)")
+    return z
+
+
+def _npz_member(z: np.lib.npyio.NpzFile, k: str, path: str | Path, own: str) -> np.ndarray:
+    """The array stored under key ``k``; an unreadable member (an object array, which needs pickle; raw
+    bytes that are not an ``.npy``; a corrupt entry) is a ValueError naming ``k`` and ``path``."""
+    try:
+        a = z[k]
+    except _NPZ_ERRORS as e:
+        raise ValueError(f"{own}: key '{k}' of {path} cannot be read as a .npy array: {e}") from None
+    if not isinstance(a, np.ndarray):
+        raise ValueError(f"{own}: key '{k}' of {path} is not a .npy array (got {type(a).__name__})")
+    return a
+
+
+def _npz_scalar(z: np.lib.npyio.NpzFile, k: str, path: str | Path, own: str, what: str) -> Any:
+    """Key ``k`` as a Python value: a 0-d array of ``what`` (``"integer"``: an integer dtype;
+    ``"real number"``: integer or floating; ``"string"``: unicode); bool is none of them."""
+    a = _npz_member(z, k, path, own)
+    ok = {"integer": a.dtype != np.bool_ and np.issubdtype(a.dtype, np.integer),
+          "real number": _real_dtype(a),
+          "string": a.dtype.kind == "U"}[what]
+    if a.shape != () or not ok:
+        raise ValueError(f"{own}: key '{k}' of {path} must be a 0-d {what}, got dtype {a.dtype} and shape "
+                         f"{a.shape}")
+    return str(a[()]) if what == "string" else a[()].item()
+
+
+def _check_npz_keys(z: np.lib.npyio.NpzFile, keys: set[str], path: str | Path, own: str) -> None:
+    """The ``format`` and ``format_version`` keys, no unknown key, the required keys present."""
+    fmt = _npz_member(z, "format", path, own) if "format" in keys else None
+    if fmt is None or fmt.shape != () or fmt.dtype.kind != "U" or str(fmt[()]) != FORMAT:
+        raise ValueError(f"{own}: {path} is not a {FORMAT} file (no or another 'format' key)")
+    if "format_version" not in keys:
+        raise ValueError(f"{own}: {path} has no 'format_version'")
+    ver = _npz_scalar(z, "format_version", path, own, "integer")
+    if ver > FORMAT_VERSION:
+        raise ValueError(f"{own}: {path} has format version {ver}, written by a newer version; this "
+                         f"reader knows up to {FORMAT_VERSION}")
+    if ver < 1:
+        raise ValueError(f"{own}: {path} has an invalid format version {ver}")
+    known = {"format", "format_version", "x", "dt", "u", "ref", "meta_json"}
+    unknown = sorted(k for k in keys - known if not k.startswith("frame/"))
+    if unknown:
+        raise ValueError(f"{own}: {path} has unknown key(s) {unknown}")
+    for k in ("x", "dt", "meta_json"):
+        if k not in keys:
+            raise ValueError(f"{own}: {path} lacks the required key '{k}'")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -219,14 +316,20 @@ def _ragged_inputs(states, controls, refs, dtype, device, own: str
 
 
 def _per_demo_dt(dt, N: int, own: str) -> list[float]:
-    """``dt`` (one positive float, or one per demo) as ``N`` floats."""
-    if isinstance(dt, Sequence) or (isinstance(dt, (np.ndarray, Tensor)) and dt.ndim > 0):
-        dt_arr = dt.detach().cpu().numpy() if isinstance(dt, Tensor) else dt
-        dts = list(np.asarray(dt_arr, dtype=np.float64).ravel())
-        if len(dts) != N:
-            raise ValueError(f"{own}: 'dt' has {len(dts)} entries for {N} demos")
-        return [_positive_float(float(v), f"dt[{i}]", own) for i, v in enumerate(dts)]
-    return [_positive_float(dt.item() if isinstance(dt, np.ndarray) else dt, "dt", own)] * N
+    """``dt`` (one positive number, or one per demo) as ``N`` floats; every entry must be a real number
+    (a bool or a string is a TypeError naming ``dt`` / ``dt[i]``)."""
+    if isinstance(dt, (str, bytes)):
+        raise TypeError(f"{own}: 'dt' must be a positive number or one per demo, got {type(dt).__name__}")
+    if isinstance(dt, (np.ndarray, Tensor)) and dt.ndim > 0 or isinstance(dt, Sequence):
+        if isinstance(dt, (np.ndarray, Tensor)):
+            if not _real_dtype(dt):
+                raise TypeError(f"{own}: 'dt' must hold real numbers, got dtype {dt.dtype}")
+            dt = dt.detach().cpu().numpy() if isinstance(dt, Tensor) else dt
+            dt = [float(v) for v in dt.reshape(-1)]
+        if len(dt) != N:
+            raise ValueError(f"{own}: 'dt' has {len(dt)} entries for {N} demos")
+        return [_positive_float(v, f"dt[{i}]", own) for i, v in enumerate(dt)]
+    return [_positive_float(dt, "dt", own)] * N
 
 
 def _resample_ragged(xs: list[Tensor], us: list[Tensor] | None, rs: list[Tensor] | None, T: int
@@ -268,6 +371,10 @@ class Demonstrations:
 
     Every field is checked here: shapes, dtype (``x``, ``u``, ``ref`` share float32/float64 and the
     device), finite values (an error names the field, the demo index and the time step).
+
+    No copy: ``x``, ``u``, ``ref`` and the frame tensors are kept by reference (``frames`` becomes a new
+    dict, ``meta`` a deep copy), so the demos stay on the autograd graph of their inputs; modifying an input
+    tensor in place afterwards changes these demos and bypasses the checks (pass ``x.clone()`` to decouple).
     """
 
     x: Tensor
@@ -430,7 +537,8 @@ class Demonstrations:
     @staticmethod
     def cat(demos: Sequence[Demonstrations]) -> Demonstrations:
         """Concatenate along the demos: same ``T``, ``n``, ``m``, ``r``, dtype, ``dt`` (to 1e-9 relative)
-        and frame names/shapes; ``meta`` is the first one's (plus a ``history`` entry)."""
+        and frame names, shapes and dtypes (no promotion); ``meta`` is the first one's (plus a ``history``
+        entry)."""
         own = "Demonstrations.cat"
         demos = list(demos)
         if not demos or not all(isinstance(d, Demonstrations) for d in demos):
@@ -447,6 +555,10 @@ class Demonstrations:
                     raise ValueError(f"{own}: item {i} has {what} {a}, item 0 has {b}")
             if abs(d.dt - d0.dt) > _DT_RTOL * d0.dt:
                 raise ValueError(f"{own}: item {i} has dt {d.dt}, item 0 has {d0.dt}")
+            for k, v in d.frames.items():
+                if v.dtype != d0.frames[k].dtype:
+                    raise TypeError(f"{own}: frame '{k}' has dtype {v.dtype} in item {i}, "
+                                    f"{d0.frames[k].dtype} in item 0 (convert it first; nothing is promoted)")
         return Demonstrations(
             x=torch.cat([d.x for d in demos]), dt=d0.dt,
             u=None if d0.u is None else torch.cat([d.u for d in demos]),
@@ -542,31 +654,19 @@ class Demonstrations:
 
     @classmethod
     def load(cls, path: str | Path) -> Demonstrations:
-        """Read a file written by :meth:`save` (``allow_pickle=False``) and validate it."""
+        """Read a file written by :meth:`save` (``allow_pickle=False``) and validate it.
+
+        A file that is not an ``.npz`` of this format (a plain ``.npy``, a broken zip, another ``format``),
+        a member that is not a numeric ``.npy`` array (an object array, raw bytes), a malformed ``dt`` /
+        ``format_version`` / ``meta_json`` or an unknown key is a ValueError naming the key and ``path``."""
         own = "Demonstrations.load"
-        with np.load(Path(path), allow_pickle=False) as z:
+        with _open_npz(path, own) as z:
             keys = set(z.files)
-            if "format" not in keys or str(z["format"][()]) != FORMAT:
-                raise ValueError(f"{own}: {path} is not a {FORMAT} file (no or another 'format' key)")
-            if "format_version" not in keys:
-                raise ValueError(f"{own}: {path} has no 'format_version'")
-            ver = int(z["format_version"][()])
-            if ver > FORMAT_VERSION:
-                raise ValueError(f"{own}: {path} has format version {ver}, written by a newer version; this "
-                                 f"reader knows up to {FORMAT_VERSION}")
-            if ver < 1:
-                raise ValueError(f"{own}: {path} has an invalid format version {ver}")
-            known = {"format", "format_version", "x", "dt", "u", "ref", "meta_json"}
-            unknown = sorted(k for k in keys - known if not k.startswith("frame/"))
-            if unknown:
-                raise ValueError(f"{own}: {path} has unknown key(s) {unknown}")
-            for k in ("x", "dt", "meta_json"):
-                if k not in keys:
-                    raise ValueError(f"{own}: {path} lacks the required key '{k}'")
+            _check_npz_keys(z, keys, path, own)
 
             def tens(k: str) -> Tensor:
-                a = z[k]
-                if not (np.issubdtype(a.dtype, np.number) or a.dtype == np.bool_):
+                a = _npz_member(z, k, path, own)
+                if not (_real_dtype(a) or a.dtype == np.bool_):
                     raise ValueError(f"{own}: key '{k}' of {path} has non-numeric dtype {a.dtype}")
                 return torch.from_numpy(np.array(a, copy=True))
 
@@ -574,12 +674,15 @@ class Demonstrations:
             u = tens("u") if "u" in keys else None
             ref = tens("ref") if "ref" in keys else None
             frames = {k[len("frame/"):]: tens(k) for k in sorted(keys) if k.startswith("frame/")}
-            dt = float(z["dt"][()])
+            dt = _npz_scalar(z, "dt", path, own, "real number")
             try:
-                meta = json.loads(str(z["meta_json"][()]))
+                meta = json.loads(_npz_scalar(z, "meta_json", path, own, "string"))
             except ValueError as e:
                 raise ValueError(f"{own}: key 'meta_json' of {path} is not JSON: {e}") from None
-        return cls(x=x, dt=dt, u=u, ref=ref, frames=frames, meta=meta)
+        try:
+            return cls(x=x, dt=dt, u=u, ref=ref, frames=frames, meta=meta)
+        except (TypeError, ValueError) as e:
+            raise type(e)(f"{own}: {path}: {e}") from None
 
     # --- users' own data ------------------------------------------------------------------------------
     @classmethod
@@ -599,7 +702,7 @@ class Demonstrations:
             resample: ``None``: every demo must have the same length; an int ``T``: each demo is
                 time-normalized to ``T`` samples (as :meth:`resample`), the common ``dt`` is the mean
                 duration over ``T-1``, and each demo's own ``duration`` (seconds) and ``length`` (samples)
-                are kept as frames.
+                are kept as frames (a user frame of either name is then an error, never replaced).
             frames: per-demo arrays with leading dimension ``N``.
             dtype: float32/float64; default the promoted dtype of the inputs (integers: float64).
 
@@ -629,8 +732,9 @@ class Demonstrations:
         T = _pos_int(resample, "resample", own, least=2)
         x, u, ref = _resample_ragged(xs, us, rs, T)
         durations = [(L - 1) * d for L, d in zip(lengths, dts)]
-        user_frames.setdefault("duration", torch.tensor(durations, dtype=dtype, device=device))
-        user_frames.setdefault("length", torch.tensor(lengths, dtype=torch.int64, device=device))
+        user_frames = _merge_strict({"duration": torch.tensor(durations, dtype=dtype, device=device),
+                                     "length": torch.tensor(lengths, dtype=torch.int64, device=device)},
+                                    user_frames, "frame", own)
         meta = _history(meta, {"op": "resample", "to": T})
         return cls(x=x, dt=sum(durations) / N / (T - 1), u=u, ref=ref, frames=user_frames, meta=meta)
 
@@ -719,8 +823,13 @@ def time_warp(demos: Demonstrations, strength: float, generator: torch.Generator
     Each demo gets a warped clock ``τ(s) = ∫_0^s e^{g} / ∫_0^1 e^{g}`` on the phase ``s ∈ [0, 1]``, with a
     log-rate ``g(s) = Σ_k w_k φ_k(s)`` on ``n_basis`` Gaussian RBFs (seed Eq. 25,
     :func:`controllers.basis.rbf`), ``w_k ~ N(0, strength²)``: the local speed varies by factors around
-    ``e^{±strength}``, ``τ`` is strictly increasing with ``τ(0) = 0``, ``τ(1) = 1`` (the integral by the
-    trapezoidal rule on the ``T`` samples).
+    ``e^{±strength}``, ``τ(0) = 0``, ``τ(1) = 1`` (the integral by the trapezoidal rule on the ``T``
+    samples).  The rate is scale-free (``τ`` is normalized), so it is computed as ``e^{g - max g}``: no
+    overflow at any strength.  ``τ`` is strictly increasing in exact arithmetic and for moderate strengths;
+    at very large strengths (rate ratios beyond the floating-point range, strength of order 50 or more)
+    some steps round to zero and ``τ`` is only non-decreasing.  ``strength = 0`` is exactly the identity
+    (``τ`` = the uniform phases, the demos returned unchanged up to the history entry; the generator is
+    advanced as for any strength).
     The new sample ``t`` is the old trajectory read at ``τ(s_t)`` (linear interpolation); ``u`` (read at
     the control times) and ``ref`` are warped alike, ``T``, ``dt`` and the frames are kept.  Warped controls
     are an interpolation, not controls that reproduce the new states through the dynamics.
@@ -736,16 +845,57 @@ def time_warp(demos: Demonstrations, strength: float, generator: torch.Generator
     s = basis.phases(d.T, **kw)
     w = _randn((d.N, K), generator, d.x, own) * strength
     g = w @ basis.rbf(s, K).T  # (N, T)
-    rate = torch.exp(g)
-    inc = 0.5 * (rate[:, 1:] + rate[:, :-1])
-    c = torch.cat([torch.zeros(d.N, 1, **kw), torch.cumsum(inc, 1)], 1)
-    tau = c / c[:, -1:]
-    tau = torch.cat([torch.zeros(d.N, 1, **kw), tau[:, 1:-1], torch.ones(d.N, 1, **kw)], 1)
+    if strength == 0.0:
+        tau = s.expand(d.N, d.T).clone()  # exactly the identity (a normalized cumsum is off by ulps)
+    else:
+        rate = torch.exp(g - g.max(dim=1, keepdim=True).values)  # in (0, 1]: no overflow
+        inc = 0.5 * (rate[:, 1:] + rate[:, :-1])
+        c = torch.cat([torch.zeros(d.N, 1, **kw), torch.cumsum(inc, 1)], 1)
+        tau = c / c[:, -1:]
+        tau = torch.cat([torch.zeros(d.N, 1, **kw), tau[:, 1:-1], torch.ones(d.N, 1, **kw)], 1)
     out = d._replace(x=_interp(d.x, s, tau),
                      u=None if d.u is None else _interp(d.u, s[:-1], tau[:, :-1]),
                      ref=None if d.ref is None else _interp(d.ref, s, tau),
                      meta=_history(d.meta, {"op": "time_warp", "strength": strength, "n_basis": K}))
     return (out, tau) if return_phase else out
+
+
+def _check_dims(dims: Any, n: int, own: str) -> list[int]:
+    """``dims`` (``None``: all ``n``) as distinct ints in ``[0, n)``; a float or bool entry is an error."""
+    if dims is None:
+        return list(range(n))
+    if isinstance(dims, (str, bytes)) or not isinstance(dims, (Sequence, np.ndarray, Tensor)):
+        raise TypeError(f"{own}: 'dims' must be a sequence of state indices, got {type(dims).__name__}")
+    dims = list(dims.tolist() if isinstance(dims, (np.ndarray, Tensor)) else dims)
+    for j in dims:
+        if isinstance(j, (bool, np.bool_)) or not isinstance(j, (int, np.integer)):
+            raise TypeError(f"{own}: 'dims' must hold ints (state indices), got {j!r} in {dims}")
+    dims = [int(j) for j in dims]
+    if not dims or len(set(dims)) != len(dims) or not all(0 <= j < n for j in dims):
+        raise ValueError(f"{own}: 'dims' must be distinct state indices in [0, {n}), got {dims}")
+    return dims
+
+
+def _scale_vector(scale: Any, k: int, kw: dict, own: str) -> tuple[Tensor, Any]:
+    """``scale`` as ``(k,)`` non-negative finite values (dtype/device ``kw``) and its JSON record: a real
+    scalar (Python/numpy number, 0-d tensor/array) is repeated, else ``k`` values (one per dim).  A tensor
+    keeps its autograd graph."""
+    if isinstance(scale, (bool, np.bool_, str, bytes)):
+        raise TypeError(f"{own}: 'scale' must be a non-negative number or {k} of them, got {scale!r}")
+    if isinstance(scale, (int, float, np.integer, np.floating)):
+        return torch.full((k,), _nonneg_float(scale, "scale", own), **kw), float(scale)
+    if isinstance(scale, (np.ndarray, Tensor)) and not _real_dtype(scale):
+        raise TypeError(f"{own}: 'scale' must hold real numbers, got dtype {scale.dtype}")
+    try:
+        sc = torch.as_tensor(scale, **kw).reshape(-1)
+    except (TypeError, ValueError, RuntimeError) as e:
+        raise TypeError(f"{own}: 'scale' must be a non-negative number or {k} of them: {e}") from None
+    if sc.numel() == 1 and (isinstance(scale, (np.ndarray, Tensor)) and scale.ndim == 0):
+        sc = sc.expand(k)
+    if sc.numel() != k or not bool((torch.isfinite(sc) & (sc >= 0)).all()):
+        raise ValueError(f"{own}: 'scale' must be a non-negative float or {k} of them (one per dim)")
+    rec = float(sc[0]) if isinstance(scale, (np.ndarray, Tensor)) and scale.ndim == 0 else sc.tolist()
+    return sc, rec
 
 
 def spatial_noise(demos: Demonstrations, scale: float | Sequence[float] | Tensor,
@@ -764,19 +914,9 @@ def spatial_noise(demos: Demonstrations, scale: float | Sequence[float] | Tensor
     own = "spatial_noise"
     d = _check_demos(demos, own)
     K = _pos_int(n_basis, "n_basis", own)
-    dims = list(range(d.n)) if dims is None else [int(j) for j in dims]
-    if not dims or len(set(dims)) != len(dims) or not all(0 <= j < d.n for j in dims):
-        raise ValueError(f"{own}: 'dims' must be distinct state indices in [0, {d.n}), got {dims}")
+    dims = _check_dims(dims, d.n, own)
     kw = dict(dtype=d.dtype, device=d.device)
-    if isinstance(scale, (int, float, np.floating)) and not isinstance(scale, bool):
-        sc = torch.full((len(dims),), _nonneg_float(scale, "scale", own), **kw)
-        rec: Any = float(scale)
-    else:
-        sc = torch.as_tensor(scale, **kw).reshape(-1)
-        if sc.numel() != len(dims) or not bool((torch.isfinite(sc) & (sc >= 0)).all()):
-            raise ValueError(f"{own}: 'scale' must be a non-negative float or {len(dims)} of them "
-                             "(one per dim)")
-        rec = sc.tolist()
+    sc, rec = _scale_vector(scale, len(dims), kw, own)
     s = basis.phases(d.T, **kw)
     phi = basis.rbf(s, K)
     phi = phi / phi.norm(dim=-1, keepdim=True)  # (T, K), unit rows
@@ -810,9 +950,9 @@ def _dt_of(system: Any, dt: Any, own: str) -> float:
 
 def _finish(own: str, x: Tensor, u: Tensor, dt: float, ok_finite: Tensor, converged: Tensor, reason_names,
             frames: dict[str, Tensor], keep: str, meta: dict) -> Demonstrations:
-    """Keep / drop elements per ``keep`` and build the demos; ``frames`` already flat ``(N, ...)``."""
+    """Keep / drop elements per ``keep`` and build the demos; ``frames`` already flat ``(N, ...)`` (with
+    ``"index"``); ``meta["dropped"]`` is filled here."""
     N = x.shape[0]
-    frames = {"index": torch.arange(N, device=x.device), **frames}
     if keep == "all":
         keep_mask = ok_finite
         if not bool(ok_finite.all()):
@@ -845,11 +985,43 @@ def _flat_frames(frames: Mapping[str, Any] | None, bs: torch.Size, N: int, devic
     return out
 
 
+def _expert_records(sol: Any, problem: Any, method: Any, frames: Mapping[str, Any] | None,
+                    meta: Mapping[str, Any] | None, own: str):
+    """From an iLQR solution: flat ``x (N, T+1, n)``, ``u (N, T, m)``, the finite mask, the reason names,
+    the frames and the meta of :func:`expert_demos` (the user's merged, clashes refused)."""
+    from controllers.problem import Reason
+
+    bs = sol.x.shape[:-2]
+    N = int(math.prod(bs))
+    x = sol.x.reshape(N, problem.T + 1, problem.n)
+    u = sol.u.reshape(N, problem.T, problem.m)
+    reason = sol.status.reason.reshape(N)
+    names = [Reason(int(c)).name for c in reason.tolist()]
+    ok = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
+    zero = torch.zeros((), dtype=x.dtype, device=x.device)
+    fr = _merge_strict({"index": torch.arange(N, device=x.device),
+                        "converged": sol.status.converged.reshape(N), "reason": reason,
+                        "iterations": sol.status.iterations.reshape(N),
+                        "cost": torch.where(ok, sol.cost.reshape(N), zero).detach(),
+                        "kkt_residual": torch.where(ok, sol.kkt_residual.reshape(N), zero).detach()},
+                       _flat_frames(frames, bs, N, x.device, own), "frame", own)
+    md = _merge_strict({"source": "expert_demos", "solver": "ilqr",
+                        "method": str(getattr(method, "value", method)), "batch_shape": list(bs),
+                        "reasons": {str(int(r)): r.name for r in Reason},
+                        "converged": int(sol.status.converged.sum()), "total": N, "dropped": None},
+                       dict(meta or {}), "meta key", own)
+    return x, u, ok, names, fr, md
+
+
 def expert_demos(problem: Any, u_init: Tensor | None = None, *, dt: float | None = None, options: Any = None,
                  method: str = "recursive", keep: str = "all", frames: Mapping[str, Any] | None = None,
                  meta: Mapping[str, Any] | None = None) -> Demonstrations:
     """Demonstrations from an iLQR expert: one batched :func:`controllers.ilqr.ilqr` solve of ``problem``
-    (an :class:`~controllers.ilqr.ILQRProblem` with batched start states ``x0 (*B, n)``; no gradients).
+    (an :class:`~controllers.ilqr.ILQRProblem` with batched start states ``x0 (*B, n)``).
+
+    No gradients: the solve runs with ``grad="none"`` and the demos are detached data even when the problem's
+    tensors require grad (as :func:`mpc_demos`); differentiate the solver itself
+    (:func:`controllers.ilqr.ilqr` with ``grad=``) where a gradient is wanted.
 
     The ``prod(B)`` solutions (flattened row-major) become demos ``x (N, T+1, n)``, ``u (N, T, m)`` with
     ``dt`` from the system's ``dt`` attribute (or the argument).  Frames: ``"index"`` (the element's
@@ -858,10 +1030,11 @@ def expert_demos(problem: Any, u_init: Tensor | None = None, *, dt: float | None
     ``"cost"``, ``"kkt_residual"``, plus the user's ``frames`` (leading dims ``B``).  ``keep``:
     ``"all"`` keeps every element (non-converged ones are flagged; a non-finite trajectory is an error
     naming the element), ``"finite"`` drops non-finite ones, ``"converged"`` keeps only converged ones;
-    what is dropped is listed in ``meta["dropped"]`` (count, indices, reasons).
+    what is dropped is listed in ``meta["dropped"]`` (count, indices, reasons).  A user frame or ``meta``
+    key under one of the computed names above (or ``"dropped"``, ``"source"``...) is a ValueError, never
+    silently overridden.
     """
     from controllers.ilqr import ILQRProblem, ilqr
-    from controllers.problem import Reason
 
     own = "expert_demos"
     if not isinstance(problem, ILQRProblem):
@@ -873,22 +1046,7 @@ def expert_demos(problem: Any, u_init: Tensor | None = None, *, dt: float | None
         raise TypeError(f"{own}: the problem's dtype must be float32 or float64, got {problem.dtype}")
     dt = _dt_of(problem.dynamics, dt, own)
     sol = ilqr(problem, u_init, method=method, grad="none", options=options)
-    bs = sol.x.shape[:-2]
-    N = int(math.prod(bs))
-    T, n, m = problem.T, problem.n, problem.m
-    x = sol.x.reshape(N, T + 1, n)
-    u = sol.u.reshape(N, T, m)
-    reason = sol.status.reason.reshape(N)
-    names = [Reason(int(c)).name for c in reason.tolist()]
-    ok = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
-    cost = torch.where(ok, sol.cost.reshape(N), torch.zeros((), dtype=x.dtype, device=x.device))
-    kkt = torch.where(ok, sol.kkt_residual.reshape(N), torch.zeros((), dtype=x.dtype, device=x.device))
-    fr = {"converged": sol.status.converged.reshape(N), "reason": reason,
-          "iterations": sol.status.iterations.reshape(N), "cost": cost.detach(), "kkt_residual": kkt.detach(),
-          **_flat_frames(frames, bs, N, x.device, own)}
-    md = {"source": "expert_demos", "solver": "ilqr", "method": str(getattr(method, "value", method)),
-          "batch_shape": list(bs), "reasons": {str(int(r)): r.name for r in Reason},
-          "converged": int(sol.status.converged.sum()), "total": N, **dict(meta or {})}
+    x, u, ok, names, fr, md = _expert_records(sol, problem, method, frames, meta, own)
     return _finish(own, x.detach(), u.detach(), dt, ok, fr["converged"], names, fr, keep, md)
 
 
@@ -900,7 +1058,10 @@ def mpc_demos(system: Any, cost: Any, x0: Tensor, horizon: int, steps: int, *, d
     start states ``x0 (*B, n)``): ``x (N, steps+1, n)``, ``u (N, steps, m)``.  Frames: ``"index"``,
     ``"converged"`` (every solve along the demo converged), ``"converged_steps" (N, steps)``,
     ``"iterations" (N, steps)`` and the user's; ``keep`` as in :func:`expert_demos` (``"converged"``:
-    demos whose every solve converged)."""
+    demos whose every solve converged).  A user frame or ``meta`` key under a computed name is a ValueError.
+
+    No gradients: :func:`~controllers.mpc.run_mpc` runs without a graph and the demos are detached data even
+    when ``x0`` or the cost's tensors require grad (as :func:`expert_demos`)."""
     from controllers.mpc import run_mpc
 
     own = "mpc_demos"
@@ -921,11 +1082,13 @@ def mpc_demos(system: Any, cost: Any, x0: Tensor, horizon: int, steps: int, *, d
     ok = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
     names = ["CONVERGED" if c else ("NONFINITE" if not f else "NOT_CONVERGED")
              for c, f in zip(conv.tolist(), ok.tolist())]
-    fr = {"converged": conv, "converged_steps": conv_steps, "iterations": ro.iterations.reshape(N, steps),
-          **_flat_frames(frames, bs, N, x.device, own)}
-    md = {"source": "mpc_demos", "solver": "mpc (ilqr)", "horizon": int(horizon), "batch_shape": list(bs),
-          "converged": int(conv.sum()), "total": N, **dict(meta or {})}
-    return _finish(own, x, u, dt, ok, conv, names, fr, keep, md)
+    fr = _merge_strict({"index": torch.arange(N, device=x.device), "converged": conv,
+                        "converged_steps": conv_steps, "iterations": ro.iterations.reshape(N, steps)},
+                       _flat_frames(frames, bs, N, x.device, own), "frame", own)
+    md = _merge_strict({"source": "mpc_demos", "solver": "mpc (ilqr)", "horizon": int(horizon),
+                        "batch_shape": list(bs), "converged": int(conv.sum()), "total": N, "dropped": None},
+                       dict(meta or {}), "meta key", own)
+    return _finish(own, x.detach(), u.detach(), dt, ok, conv, names, fr, keep, md)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -998,6 +1161,8 @@ def handwriting(letters: str = "SCUN", n_demos: int = 8, T: int = 100, *, genera
     n_demos = _pos_int(n_demos, "n_demos", own)
     T = _pos_int(T, "T", own, least=2)
     duration = _positive_float(duration, "duration", own)
+    warp = _nonneg_float(warp, "warp", own)
+    noise = _nonneg_float(noise, "noise", own)
     if dtype not in _DTYPES:
         raise TypeError(f"{own}: 'dtype' must be float32 or float64, got {dtype}")
     out = {}
