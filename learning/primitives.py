@@ -117,9 +117,12 @@ def _positions(demos: Any, dt: Any, own: str, min_T: int) -> tuple[Tensor, float
 
 
 def _steps(t_idx: Any, T: int, own: str, device) -> Tensor:
-    """Time indices as a long tensor ``(*B, V)`` (or ``(V,)``), each in ``[0, T-1]``."""
+    """Time indices as a long tensor ``(*B, V)`` (or ``(V,)``), each in ``[0, T-1]`` (from ints, a sequence of
+    ints, an integer numpy array or a long tensor)."""
     if isinstance(t_idx, (int, np.integer)) and not isinstance(t_idx, bool):
         t_idx = [int(t_idx)]
+    if isinstance(t_idx, np.ndarray) and t_idx.dtype.kind in "iu":
+        t_idx = torch.from_numpy(t_idx.astype(np.int64))
     if isinstance(t_idx, Tensor):
         if t_idx.dtype.is_floating_point or t_idx.dtype == torch.bool or t_idx.dim() < 1:
             raise TypeError(f"{own}: argument 't_idx' must be ints (V,) or a long tensor (*B, V), got "
@@ -136,6 +139,62 @@ def _steps(t_idx: Any, T: int, own: str, device) -> Tensor:
     if int(t.min()) < 0 or int(t.max()) >= T:
         raise ValueError(f"{own}: argument 't_idx' must lie in [0, {T - 1}], got {t.tolist()}")
     return t
+
+
+def _finite(M: Tensor) -> Tensor:
+    """``(...)`` whether each matrix of ``M (..., m, m)`` is finite."""
+    return torch.isfinite(M).all(-1).all(-1)
+
+
+def _eye_where(ok: Tensor, M: Tensor) -> Tensor:
+    """``M (..., m, m)`` with the identity for the matrices where ``ok (...)`` is False (stand-in data, so
+    that a decomposition of the batch never fails because of one bad element)."""
+    eye = torch.eye(M.shape[-1], dtype=M.dtype, device=M.device)
+    return torch.where(ok[..., None, None], M, eye)
+
+
+#: eigenvalues of an innovation covariance below this · q · ε · scale count as zero (:func:`_psd_pinv`)
+_PINV_RTOL = 100.0
+
+
+def _psd_pinv(W: Tensor, scale: Tensor) -> Tensor:
+    """Pseudo-inverse ``W⁺`` of symmetric PSD matrices ``W (*B, q, q)``; eigenvalues ``≤ tol · scale``
+    (``scale (*B,)``, ``tol = _PINV_RTOL q ε = 100 q ε``) count as zero, i.e. as directions without variance.
+
+    The range basis ``V_r`` (eigenvectors of the kept eigenvalues) is taken without a graph and
+    ``W⁺ = V_r (V_rᵀ W V_r)⁻¹ V_rᵀ`` is differentiated through a Cholesky inverse: for a full-rank ``W`` this
+    is ``W⁻¹`` with its exact gradient (whatever orthogonal ``V``), for a rank-deficient one the gradient at
+    a fixed range.  A non-finite ``W`` gives NaN for that element only.
+    """
+    ok = _finite(W) & torch.isfinite(scale)
+    Wf = _eye_where(ok, W)
+    with torch.no_grad():
+        lam, V = torch.linalg.eigh(Wf)
+        tol = _PINV_RTOL * W.shape[-1] * torch.finfo(W.dtype).eps
+        keep = lam > tol * torch.where(ok, scale, torch.ones_like(scale)).unsqueeze(-1)
+        block = keep.unsqueeze(-1) & keep.unsqueeze(-2)  # the kept x kept block of Vᵀ W V
+    M = torch.where(block, V.mT @ Wf @ V, torch.eye(W.shape[-1], dtype=W.dtype, device=W.device))
+    Minv = torch.where(block, torch.cholesky_inverse(torch.linalg.cholesky_ex(M)[0]), 0.0)
+    return torch.where(ok[..., None, None], V @ Minv @ V.mT, torch.nan)
+
+
+def _check_noise(noise: Tensor, own: str) -> None:
+    """Refuse a (finite) noise covariance ``(..., d, d)`` that is not symmetric positive semi-definite."""
+    ok = _finite(noise)
+    Nf = torch.where(ok[..., None, None], noise, 0.0).detach()
+    mag = Nf.abs().amax(dim=(-2, -1), keepdim=True)
+    tol = 100 * noise.shape[-1] * torch.finfo(noise.dtype).eps * mag
+    if bool(((Nf - Nf.mT).abs() > tol).any()):
+        raise ValueError(f"{own}: argument 'noise' must be symmetric (a covariance (*B, V, d, d))")
+    if bool((torch.linalg.eigvalsh(Nf) < -tol.squeeze(-1)).any()):
+        raise ValueError(f"{own}: argument 'noise' must be positive semi-definite (a covariance)")
+
+
+def _push_step(at: Any, T: int, own: str) -> int:
+    """``at`` (a Python or numpy int in ``[0, T-1]``) as an int."""
+    if isinstance(at, bool) or not isinstance(at, (int, np.integer)) or not 0 <= int(at) < T:
+        raise ValueError(f"{own}: argument 'at' must be an int in [0, {T - 1}], got {at!r}")
+    return int(at)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -184,7 +243,7 @@ class DMP:
             goal: new end point ``(..., D)`` (reached at rest) or ``(..., 2D)``: the plan is re-solved with
                 this reference at ``T-1`` (the gains ``K_t`` do not depend on references and are kept).
             perturbation: a push ``(..., D)`` (positions) or ``(..., 2D)`` added to the state at step ``at``.
-            at: the step of the push, default ``T // 2`` (mid-course).
+            at: the step of the push (a Python or numpy int), default ``T // 2`` (mid-course).
         Returns:
             :class:`Reproduction` with batch ``broadcast((*B, N), ...)``.
         """
@@ -202,8 +261,10 @@ class DMP:
             if v.shape[-1] != D:
                 raise ValueError(f"{own}: argument '{name}' must have last dim {D} (positions) or {n} "
                                  f"(states), got {tuple(v.shape)}")
-            rest = torch.zeros_like(v) if fill is None else fill.expand(*v.shape[:-1], D)
-            return torch.cat([v, rest], -1)
+            if fill is None:
+                return torch.cat([v, torch.zeros_like(v)], -1)
+            bs = torch.broadcast_shapes(v.shape[:-1], fill.shape[:-1])
+            return torch.cat([v.expand(*bs, D), fill.expand(*bs, D)], -1)
 
         x0 = full(x0, "x0", like[..., 0, D:])
         goal = full(goal, "goal", None)
@@ -212,8 +273,8 @@ class DMP:
             at = (self.T - 1) // 2
         if at is not None and perturbation is None:
             raise ValueError(f"{own}: argument 'at' needs a 'perturbation'")
-        if at is not None and (isinstance(at, bool) or not isinstance(at, int) or not 0 <= at < self.T):
-            raise ValueError(f"{own}: argument 'at' must be an int in [0, {self.T - 1}], got {at!r}")
+        if at is not None:
+            at = _push_step(at, self.T, own)
         if goal is not None:
             p = lq.problem
             Tc = p.T
@@ -368,14 +429,20 @@ class ProMP:
 
             K = Σ Hᵀ (H Σ Hᵀ + Σ_ε)⁻¹,   μ' = μ + K (y - H μ),   Σ' = (I - K H) Σ (I - K H)ᵀ + K Σ_ε Kᵀ
 
-        (Joseph's form of ``Σ - K H Σ``: symmetric and PSD by construction).
+        (Joseph's form of ``Σ - K H Σ``: symmetric and PSD by construction).  The inverse is the
+        pseudo-inverse of the PSD innovation covariance ``H Σ Hᵀ + Σ_ε`` (eigenvalues below ``100 q ε`` times
+        the scale ``max_i (Σ_j |H_ij| √Σ_jj)² + max_i (Σ_ε)_ii`` count as zero; ``q`` observations), so that
+        noiseless observations that are redundant (a via point given twice, a rank-deficient ``C``, a point
+        already conditioned on) give the same result as the independent ones alone.  Inconsistent noiseless
+        observations of the same quantity give their least-squares compromise (e.g. the same step twice with
+        targets ``a``, ``b``: the mean passes through ``(a + b) / 2``), not an error.
 
         Args:
             t_idx: ``V`` steps in ``[0, T-1]`` (ints), or a long tensor ``(*B', V)`` (per via-point set).
             targets: ``(*B', V, d)``; ``*B'`` broadcasts with the distribution's batch (several via-point
                 sets at once).
-            noise: observation variance ``σ² ≥ 0`` (``σ² I``), or a covariance ``(*B', V, d, d)``.  ``0``
-                passes exactly through the via points (``H Σ Hᵀ`` is PD thanks to ``reg``).
+            noise: observation variance ``σ² ≥ 0`` (``σ² I``), or a symmetric PSD covariance
+                ``(*B', V, d, d)`` (else ``ValueError``).  ``0`` passes exactly through the via points.
             C: ``(d, n)`` observed linear function of the state; default the positions ``[I_D, 0]``.
         Returns:
             a :class:`ProMP` with batch ``broadcast(*B, *B')`` and ``params=None``.
@@ -399,6 +466,7 @@ class ProMP:
             if noise.dim() < 3 or tuple(noise.shape[-3:]) != (V, d, d):
                 raise ValueError(f"{own}: argument 'noise' must be a float or (*B, {V}, {d}, {d}), got "
                                  f"{tuple(noise.shape)}")
+            _check_noise(noise, own)
             R = torch.zeros(*noise.shape[:-3], V * d, V * d, dtype=like.dtype, device=like.device)
             for v in range(V):  # block diagonal over the via points (a loop over V, not over the batch)
                 R[..., v * d:(v + 1) * d, v * d:(v + 1) * d] = noise[..., v, :, :]
@@ -408,18 +476,22 @@ class ProMP:
         return self._update(H, targets.flatten(-2), R)
 
     def _update(self, H: Tensor, y: Tensor, R: Tensor) -> ProMP:
+        """Condition on ``y = H z + ε``, ``ε ~ N(0, R)`` (``H (*B', q, P)``, ``y (*B', q)``, ``R (*B', q, q)``
+        PSD; the formulas and the pseudo-inverse of :meth:`condition`)."""
         mu, Sig = self.mean, self.cov
         SHt = Sig @ H.mT  # (*B, P, q)
         Syy = H @ SHt + R
         Syy = 0.5 * (Syy + Syy.mT)
-        L, _ = torch.linalg.cholesky_ex(Syy)
-        Kt = torch.cholesky_solve(SHt.mT, L)  # Kᵀ (*B, q, P)
-        K = Kt.mT
+        with torch.no_grad():  # bound on H Σ Hᵀ's entries (Cauchy-Schwarz, |Σ_jk| ≤ s_j s_k) plus the noise's
+            s = Sig.diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+            scale = (((H.abs() @ s.unsqueeze(-1)).squeeze(-1) ** 2).amax(-1)
+                     + R.diagonal(dim1=-2, dim2=-1).amax(-1))
+        K = SHt @ _psd_pinv(Syy, scale)  # (*B, P, q)
         r = y - (H @ mu.unsqueeze(-1)).squeeze(-1)
         mean = mu + (K @ r.unsqueeze(-1)).squeeze(-1)
         eye = torch.eye(Sig.shape[-1], dtype=Sig.dtype, device=Sig.device)
         IKH = eye - K @ H
-        cov = IKH @ Sig @ IKH.mT + K @ R @ Kt
+        cov = IKH @ Sig @ IKH.mT + K @ R @ K.mT
         cov = 0.5 * (cov + cov.mT)
         bs = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2])
         return ProMP(mean=mean.expand(*bs, mean.shape[-1]), cov=cov.expand(*bs, *cov.shape[-2:]), S=self.S,
@@ -442,7 +514,8 @@ class ProMP:
 
         ``z = μ + L ε`` with the Cholesky factor ``L`` of ``Σ`` (reparameterized: differentiable in ``μ`` and
         ``Σ``); an element whose ``Σ`` is only semi-definite (e.g. after noiseless conditioning) uses the
-        factor ``V √max(λ, 0)`` of its eigendecomposition instead.
+        factor ``V √max(λ, 0)`` of its eigendecomposition instead.  An element with a non-finite ``Σ`` gives
+        NaN samples and leaves the others unchanged.
         """
         own = "ProMP.sample"
         n = _pos_int(n, "n", own)
@@ -451,27 +524,53 @@ class ProMP:
                             f"{type(generator).__name__}")
         dist = self if x1 is None else self.given_start(x1)
         cov = dist.cov
-        L, info = torch.linalg.cholesky_ex(cov)
-        bad = info != 0
-        if bool(bad.any()):
-            lam, Vec = torch.linalg.eigh(torch.where(bad[..., None, None], cov, torch.eye(
-                cov.shape[-1], dtype=cov.dtype, device=cov.device)))
-            Le = Vec * lam.clamp_min(0).sqrt().unsqueeze(-2)
-            L = torch.where(bad[..., None, None], Le, L)
+        ok = _finite(cov)
+        L = self._factor(_eye_where(ok, cov))
+        L = torch.where(ok[..., None, None], L, torch.nan)
         P = cov.shape[-1]
         eps = torch.randn(n, *dist.batch_shape, P, generator=generator, dtype=cov.dtype,
                           device=generator.device).to(cov.device)
         z = dist.mean + (L @ eps.unsqueeze(-1)).squeeze(-1)
         return (z @ self.S.mT).unflatten(-1, (self.T, self.n))
 
+    @staticmethod
+    def _factor(cov: Tensor) -> Tensor:
+        """``L`` with ``L Lᵀ = cov`` for finite PSD ``cov (*B, P, P)``: Cholesky, or ``V √max(λ, 0)`` from the
+        eigendecomposition for the elements where it fails."""
+        L, info = torch.linalg.cholesky_ex(cov)
+        bad = info != 0
+        if bool(bad.any()):
+            lam, Vec = torch.linalg.eigh(_eye_where(bad, cov))
+            Le = Vec * lam.clamp_min(0).sqrt().unsqueeze(-2)
+            L = torch.where(bad[..., None, None], Le, L)
+        return L
+
     # --- minimal intervention tracking (§7.7) -------------------------------------------------------------
+    def _precisions(self, floor: float, own: str) -> Tensor:
+        """``(*B, T, n, n)`` the precisions ``(Σ_t + floor I)⁻¹`` (NaN where ``Σ_t`` is not finite)."""
+        eye = torch.eye(self.n, dtype=self.mean.dtype, device=self.mean.device)
+        Sig = self.state_marginal_cov() + floor * eye
+        ok = _finite(Sig)
+        L, info = torch.linalg.cholesky_ex(_eye_where(ok, Sig))
+        if bool((info != 0).any()):
+            raise ValueError(f"{own}: argument 'floor' = {floor} leaves a state covariance Σ_t + floor I "
+                             f"that is not positive definite (Σ_0 = 0 after given_start?); use floor > 0")
+        Q = torch.cholesky_inverse(L)
+        return torch.where(ok[..., None, None], 0.5 * (Q + Q.mT), torch.nan)
+
     def track(self, x0: Tensor | None = None, *, control_weight: float = 1e-6, floor: float = 1e-6,
               perturbation: Tensor | None = None, at: int | None = None) -> Tracking:
         """LQT tracking the mean with precision ``Q_t = (Σ_t + floor I)⁻¹`` per step (seed §7.7: stiff where
         the demos agree, compliant where they vary), control weight ``R = control_weight I``, from ``x0``
         (``(*B', n)`` state or ``(*B', D)`` positions with the mean start velocity; default the mean start),
         solved by Riccati (:func:`controllers.riccati.solve`) and rolled out in closed loop with an optional
-        push ``perturbation`` (``(*B', D)`` or ``(*B', n)``) added at step ``at`` (default ``T // 2``)."""
+        push ``perturbation`` (``(*B', D)`` or ``(*B', n)``) added at step ``at`` (default ``T // 2``).
+
+        Differentiable: the Riccati recursion is unrolled (``grad="unrolled"``), so that the gains ``K_t``,
+        ``k_t`` of the rollout carry the gradient of the demos, via points and ``x0``.  An element with a
+        non-finite covariance or mean gets NaN outputs and a failed ``status``, the others are unchanged; a
+        finite ``Σ_t + floor I`` that is not positive definite (e.g. ``floor = 0`` after an exact
+        :meth:`given_start`, where ``Σ_0 = 0``) raises a ``ValueError`` naming ``floor``."""
         own = "ProMP.track"
         control_weight = _nonneg(control_weight, "control_weight", own, positive=True)
         floor = _nonneg(floor, "floor", own)
@@ -495,17 +594,14 @@ class ProMP:
                 raise ValueError(f"{own}: argument 'perturbation' must have last dim {self.D} or {self.n}, "
                                  f"got {tuple(perturbation.shape)}")
             at = (self.T - 1) // 2 if at is None else at
-        if at is not None and (perturbation is None or isinstance(at, bool) or not isinstance(at, int)
-                               or not 0 <= at < self.T):
-            raise ValueError(f"{own}: argument 'at' must be an int in [0, {self.T - 1}] given with a "
-                             f"'perturbation', got {at!r}")
-        eye = torch.eye(self.n, dtype=like.dtype, device=like.device)
-        Sig = self.state_marginal_cov()
-        Q = torch.cholesky_inverse(torch.linalg.cholesky(Sig + floor * eye))
-        Q = 0.5 * (Q + Q.mT)
+        if at is not None and perturbation is None:
+            raise ValueError(f"{own}: argument 'at' needs a 'perturbation'")
+        if at is not None:
+            at = _push_step(at, self.T, own)
+        Q = self._precisions(floor, own)
         Rw = control_weight * torch.eye(self.D, dtype=like.dtype, device=like.device)
         cost = QuadraticCost(Q, Rw, x_ref=mu, check=False)
-        sol = riccati_solve(LQProblem(self.dynamics, cost, x0, horizon=self.T - 1))
+        sol = riccati_solve(LQProblem(self.dynamics, cost, x0, horizon=self.T - 1), grad="unrolled")
         A, B = self.dynamics.A[0], self.dynamics.B[0]
         x = sol.x[..., 0, :]
         xs, us = [], []
