@@ -58,7 +58,7 @@ ENV_BENCH_IMPLS = ("ours", "gymnasium-sync", "envpool")
 #: the workloads ``bench solver`` times (:mod:`liecontrol.bench.solver` describes each)
 SOLVER_WORKLOADS = ("quadrotor_step", "pendulum_mpc_step", "pendulum_ilqr_iteration",
                     "cartpole_swingup_batch64", "pendulum_swingup_batch64", "car_parking_step",
-                    "mpc_head_fwd_bwd", "cookbook_manipulator")
+                    "mpc_head_fwd_bwd", "cookbook_manipulator", "cookbook_car", "cookbook_bicopter")
 QUADROTOR_SCENARIOS = ("circle", "circle_mass", "flip", "loop8")
 UGV_PAPER_HORIZON = 45
 UGV_QUICK_STEPS = 150
@@ -297,8 +297,11 @@ def bench_cookbook(p: argparse.ArgumentParser) -> None:
     p.add_argument("--batch", type=positive_int, default=None, metavar="N",
                    help="starts solved in one call after the single problem (default: 64; --quick: 4)")
     p.add_argument("--repeats", type=positive_int, default=None, metavar="N",
-                   help="timed calls per figure, the median is reported (default: 5)")
-    p.add_argument("--quick", action="store_true", help="one repeat and a batch of 4 (a smoke run)")
+                   help="timed calls per figure, the median is reported (default: 5; 1 for the car's and "
+                        "the bicopter's batch rows)")
+    p.add_argument("--quick", action="store_true",
+                   help="one repeat, a batch of 4, the car over 20 steps and the bicopter over 30 "
+                        "(a smoke run)")
     _common(p, threads=None)
     p.add_argument("--threads", type=thread_count, default=1, metavar="N",
                    help="torch intra-op threads, and numpy's in the anchor (1: per-core timings)")
@@ -583,15 +586,15 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
     (("bench", "envs"), bench_envs, "liecontrol.bench.envs",
      "batched environment steps per second vs gymnasium SyncVectorEnv and EnvPool"),
     (("bench", "solver"), bench_solver, "liecontrol.bench.solver",
-     "the solver workloads (MPC steps, iLQR swing-ups, the MPC policy head, the cookbook manipulator) vs "
-     "crocoddyl, CasADi, a numpy iLQR and SB3's MLP policy"),
+     "the solver workloads (MPC steps, iLQR swing-ups, the MPC policy head, the cookbook manipulator, car "
+     "and bicopter) vs crocoddyl, CasADi, a numpy iLQR and SB3's MLP policy"),
     (("cookbook", "list"), cookbook_list, "liecontrol.cookbook",
      "every example of the seed-004 cookbook (robot manipulation) with its seed section"),
     (("cookbook", "run"), cookbook_run, "liecontrol.cookbook",
      "run cookbook examples (NAME... or --all): figures and a JSON of their checked outcomes"),
     (("bench", "cookbook"), bench_cookbook, "liecontrol.bench.cookbook",
-     "the cookbook manipulator (seed 004 §9.1) vs the cookbook's own numpy algorithm, one problem and a "
-     "batch"),
+     "the cookbook manipulator, car and bicopter (seed 004 §9.1, §9.15, §9.16) vs the cookbook's own numpy "
+     "algorithm, one problem and a batch"),
     (("reproduce", "me2"), reproduce_me2, "liecontrol.reproduce.me2",
      f"pose prediction over a 300 ms horizon by the second-order Magnus (ME2) linearization (Table 1, "
      f"Figs. 2-4) of {ME2_PAPER}"),

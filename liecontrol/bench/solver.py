@@ -24,11 +24,20 @@ changing this file:
   (``_cookbook_anchor.py``) for as many iterations as each took; both costs are printed.  Then a batch
   of 64 starts by the recursive and the lifted solver, with ``per_one`` = its time over the same solver's
   time on one problem (the script solves one problem at a time: 64 of them cost 64 times one).
+* ``cookbook_car``, ``cookbook_bicopter``: the same on the cookbook's nonlinear vehicles, the car of §9.15
+  (``iLQR_car``: velocity inputs, Eq. 118, explicit Euler; :func:`cookbook_car_problem`) and the bicopter
+  of §9.16 (``iLQR_bicopter``: absolute thrusts, Eq. 120, semi-implicit Euler like
+  :class:`~controllers.systems.bicopter.Bicopter`; :func:`cookbook_bicopter_problem`), each driven to a
+  final state over 100 steps (``--quick``: 20 and 30) from zero controls (car) or the hover thrust
+  (bicopter), both sides; anchor: the scripts' batch iLQR on the nonlinear system in plain numpy
+  (``_cookbook_vehicle_anchor.py``: a rollout loop, ``A_t, B_t``, the dense ``S_u`` and block-diagonal
+  ``Q`` of Eq. 108).  Their batch rows are timed once after the warm-up unless ``--repeats`` is given (a
+  batch of 64 by ``ilqr_lifted`` takes about a minute on one core).
 
 Records (``--json PATH``): ``{"workload", "batch", "dtype", "device", "ours_ms", "anchor", "anchor_ms",
 "ratio"}`` with ``ratio = anchor_ms / ours_ms`` (above 1: ours is faster), ``anchor``/``anchor_ms``/``ratio``
 null where there is no anchor or it could not run (``anchor_note`` says why), plus descriptive keys
-(``case``, ``horizon``, ``task``, iterations, costs, episode returns).
+(``case``, ``horizon``, ``task``, ``system``, iterations, costs, episode returns).
 
 Timing: :func:`liecontrol.report.time_ms` (median of ``--repeats`` calls after one warm-up call: the first
 call may build or compile); a closed loop times every step's call after the first (cold) one and reports
@@ -58,7 +67,8 @@ from liecontrol import _options
 from liecontrol.report import print_table, restores_threads, sync, time_ms, write_json
 
 __all__ = ["add_arguments", "run", "measure", "WORKLOADS", "Sizes", "DEFAULT_SIZES", "QUICK_SIZES",
-           "COOKBOOK", "cookbook_problem"]
+           "COOKBOOK", "COOKBOOK_CAR", "COOKBOOK_BICOPTER", "cookbook_problem", "cookbook_car_problem",
+           "cookbook_bicopter_problem", "cookbook_u_init"]
 
 #: the command's options (``--workloads``, ``--device``, ``--dtype``, ``--threads``, ``--repeats``,
 #: ``--quick``, ``--json``, ``--eager``), checked before this module is imported
@@ -86,12 +96,16 @@ class Sizes:
     repeats: int = 5
     swing_repeats: int = 1  # a batch of 64 swing-ups takes seconds
     cookbook_batch: int = 64
+    cookbook_car_T: int | None = None  # control steps of the cookbook car (None: COOKBOOK_CAR's 100)
+    cookbook_bicopter_T: int | None = None  # and of the bicopter (None: COOKBOOK_BICOPTER's 100)
+    cookbook_vehicle_batch_repeats: int = 1  # the car's and bicopter's batches of 64 take up to a minute
 
 
 DEFAULT_SIZES = Sizes()
 QUICK_SIZES = Sizes(quad_batches=(1, 4), pend_steps=3, car_batch=2, car_steps=1,
                     car_horizon=8, swing_batch=2, swing_horizon=10, swing_max_iter=5, head_batches=(4,),
-                    repeats=1, cookbook_batch=4)
+                    repeats=1, cookbook_batch=4, cookbook_car_T=20,
+                    cookbook_bicopter_T=30)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -433,6 +447,25 @@ COOKBOOK = dict(lengths=(2.0, 2.0, 1.0), dt=1e-2, T=49, x0=(3 * math.pi / 4, -ma
                 via_t=(24, 49), via_mu=((2.0, 1.0, -math.pi / 6), (3.0, 1.0, -math.pi / 3)), r=1e-6,
                 alpha_min=1e-3)
 
+#: the cookbook car (seed 004 §9.15, Eq. 118; the RCFS script iLQR_car): the velocity-input car of
+#: :class:`~controllers.systems.car_velocity.CarVelocity` (``params`` = wheelbase ℓ 0.5 m, Δt 0.1 s; explicit
+#: Euler, Eq. 192), 100 control steps from rest at the origin to the state (4, 3, π/2, 0) (a quarter turn,
+#: 5 m away): final-state precision ``qT I`` = 1e3 I and none before, R = 1e-3 I, from zero controls (at
+#: zero speed the linearization cannot steer, ``B_t``'s steering entries vanish: the first iterations only
+#: drive, then the plan turns)
+COOKBOOK_CAR = dict(params=(0.5, 0.1), T=100, x0=(0.0,) * 4, target=(4.0, 3.0, math.pi / 2, 0.0), qT=1e3,
+                    r=1e-3, u_init=(0.0, 0.0), alpha_min=1e-3)
+#: the cookbook bicopter (seed 004 §9.16, Eq. 120; the RCFS script iLQR_bicopter):
+#: :class:`~controllers.systems.bicopter.Bicopter` with its defaults (``params`` = m 2.5 kg, I 1.2 kg m²,
+#: ℓ 0.5 m, g 9.81, Δt 0.05 s; semi-implicit Euler, the seed's absolute thrusts), 100 control steps from
+#: rest at the origin to rest, level, at (1, 1): Q_T = 1e3 I and none before, R = 1e-2 I, from the hover
+#: thrust m g / 2 of each rotor.  (R acts on the absolute thrusts, so holding hover costs about 300 and
+#: dominates; with R = 1e-3 the script's plain Gauss-Newton creeps in its last digits, the recursive solver
+#: stops in 31 iterations where the script's cost still differs in the 7th digit.)
+COOKBOOK_BICOPTER = dict(params=(2.5, 1.2, 0.5, 9.81, 0.05), T=100, x0=(0.0,) * 6,
+                         target=(1.0, 1.0, 0.0, 0.0, 0.0, 0.0), qT=1e3, r=1e-2, u_init=(2.5 * 9.81 / 2,) * 2,
+                         alpha_min=1e-3)
+
 
 def cookbook_problem(dtype: torch.dtype = torch.float64, device=None):
     """The cookbook manipulator as an :class:`~controllers.ilqr.ILQRProblem`: kinematics of
@@ -463,58 +496,153 @@ def cookbook_problem(dtype: torch.dtype = torch.float64, device=None):
     return ILQRProblem(LinearDynamics(eye, c["dt"] * eye), cost, torch.tensor(c["x0"], **kw), T)
 
 
-def _cookbook_starts(prob, batch: int, seed: int = 0):
-    """The cookbook problem from ``batch`` starts: the script's own and perturbations of it (±0.2 rad)."""
+def _vehicle_problem(system, c: dict, dtype: torch.dtype, device, horizon: int | None):
+    """``system`` reaching ``c["target"]`` at the last of ``horizon`` (default ``c["T"]``) steps: a
+    :class:`~controllers.costs.QuadraticCost` with ``Q_t = 0`` for ``t < T``, ``Q_T = qT I``, ``R = r I``
+    (seed 004 Eq. 106 with a final target)."""
+    from controllers.costs import QuadraticCost
+    from controllers.ilqr import ILQRProblem
+
+    kw = dict(dtype=dtype, device=device)
+    T, n = horizon or c["T"], system.n
+    Q = torch.zeros(T + 1, n, n, **kw)
+    Q[-1] = c["qT"] * torch.eye(n, **kw)
+    cost = QuadraticCost(Q, c["r"] * torch.eye(system.m, **kw), x_ref=torch.tensor(c["target"], **kw))
+    return ILQRProblem(system.dynamics(), cost, torch.tensor(c["x0"], **kw), T)
+
+
+def cookbook_car_problem(dtype: torch.dtype = torch.float64, device=None, horizon: int | None = None):
+    """The cookbook car (:data:`COOKBOOK_CAR`) as an :class:`~controllers.ilqr.ILQRProblem` over ``horizon``
+    control steps (default 100); its initial controls: :func:`cookbook_u_init`."""
+    from controllers.systems.car_velocity import CarVelocity
+
+    length, dt = COOKBOOK_CAR["params"]
+    return _vehicle_problem(CarVelocity(length=length, dt=dt), COOKBOOK_CAR, dtype, device, horizon)
+
+
+def cookbook_bicopter_problem(dtype: torch.dtype = torch.float64, device=None, horizon: int | None = None):
+    """The cookbook bicopter (:data:`COOKBOOK_BICOPTER`, absolute thrusts) as an
+    :class:`~controllers.ilqr.ILQRProblem` over ``horizon`` control steps (default 100); its initial
+    controls (hover thrust): :func:`cookbook_u_init`."""
+    from controllers.systems.bicopter import Bicopter
+
+    mass, inertia, arm, gravity, dt = COOKBOOK_BICOPTER["params"]
+    system = Bicopter(mass=mass, inertia=inertia, arm=arm, gravity=gravity, dt=dt, hover_relative=False)
+    return _vehicle_problem(system, COOKBOOK_BICOPTER, dtype, device, horizon)
+
+
+def cookbook_u_init(c: dict, prob) -> torch.Tensor:
+    """Initial controls ``(T, m)`` of the problem ``prob`` built from ``c``: ``c["u_init"]`` at every step."""
+    return torch.tensor(c["u_init"], dtype=prob.dtype, device=prob.device).expand(prob.T, prob.m)
+
+
+def _cookbook_starts(prob, batch: int, seed: int = 0, spread: float = 0.2):
+    """The problem from ``batch`` starts: the script's own and perturbations of it, uniform in ``±spread`` in
+    every state coordinate (rad for the manipulator; m, rad, m/s for the vehicles)."""
     from controllers.ilqr import ILQRProblem
 
     g = torch.Generator().manual_seed(seed)
-    d = 0.2 * (2 * torch.rand(batch, prob.n, generator=g, dtype=torch.float64) - 1)
+    d = spread * (2 * torch.rand(batch, prob.n, generator=g, dtype=torch.float64) - 1)
     d[0] = 0
     x0 = prob.x0 + d.to(dtype=prob.x0.dtype, device=prob.x0.device)
     return ILQRProblem(prob.dynamics, prob.cost, x0, prob.T)
 
 
-def _cookbook_anchor(ctx: _Ctx, iters: int) -> tuple[dict, str | None]:
+def _cookbook_anchor(ctx: _Ctx, prob, iters: int) -> tuple[dict, str | None]:
     with tempfile.TemporaryDirectory() as tmp:
         f = Path(tmp) / "cookbook.npz"
         np.savez(f, **{k: np.asarray(v) for k, v in COOKBOOK.items()}, Q=np.eye(3), iterations=iters)
         return _subprocess("_cookbook_anchor.py", [str(f), "--repeats", str(ctx.reps())], ctx.threads)
 
 
-def _cookbook(ctx: _Ctx) -> list[dict]:
+def _vehicle_anchor(system: str, c: dict, ctx: _Ctx, prob, iters: int) -> tuple[dict, str | None]:
+    """``_cookbook_vehicle_anchor.py`` on the problem ``prob`` built from ``c`` (its horizon)."""
+    n, T = prob.n, prob.T
+    with tempfile.TemporaryDirectory() as tmp:
+        f = Path(tmp) / f"{system}.npz"
+        np.savez(f, system=np.array(system), params=np.asarray(c["params"], float), T=np.array(T),
+                 x0=np.asarray(c["x0"], float), target=np.asarray(c["target"], float),
+                 QT=c["qT"] * np.eye(n), r=np.array(float(c["r"])),
+                 u_init=np.tile(np.asarray(c["u_init"], float), (T, 1)), iterations=np.array(iters),
+                 alpha_min=np.array(float(c["alpha_min"])))
+        return _subprocess("_cookbook_vehicle_anchor.py", [str(f), "--repeats", str(ctx.reps())], ctx.threads)
+
+
+@dataclasses.dataclass(frozen=True)
+class _CookbookCase:
+    """One cookbook workload: its problem on our side (and initial controls, ``None``: zeros), and the
+    numpy script's run on the same problem for a given iteration count."""
+
+    system: str
+    anchor: str
+    problem: Callable[[_Ctx], object]
+    u_init: Callable[[object], torch.Tensor | None]
+    run_anchor: Callable[[_Ctx, object, int], tuple[dict, str | None]]
+    slow_batch: bool = False  # time the batch rows ``cookbook_vehicle_batch_repeats`` times (not ``repeats``)
+    #: the solvers of the batch rows.  The vehicles' batch is the recursive solver's alone: ``ilqr_lifted``
+    #: on nonlinear dynamics builds dense transfer matrices per element, and every element runs to the
+    #: slowest one's iteration count (64 cars 50 s, 64 bicopters 69 s a call: 116x / 64x one problem)
+    batch_methods: tuple[str, ...] = ("recursive", "lifted")
+
+
+_COOKBOOK_CASES = {
+    "cookbook_manipulator": _CookbookCase(
+        "manipulator", "numpy batch iLQR (cookbook §8.1/§9.1)",
+        lambda ctx: cookbook_problem(ctx.dtype, ctx.device), lambda prob: None, _cookbook_anchor),
+    "cookbook_car": _CookbookCase(
+        "car", "numpy batch iLQR (cookbook §8.1/§9.15)",
+        lambda ctx: cookbook_car_problem(ctx.dtype, ctx.device, ctx.sizes.cookbook_car_T),
+        lambda prob: cookbook_u_init(COOKBOOK_CAR, prob),
+        lambda ctx, prob, iters: _vehicle_anchor("car", COOKBOOK_CAR, ctx, prob, iters), slow_batch=True,
+        batch_methods=("recursive",)),
+    "cookbook_bicopter": _CookbookCase(
+        "bicopter", "numpy batch iLQR (cookbook §8.1/§9.16)",
+        lambda ctx: cookbook_bicopter_problem(ctx.dtype, ctx.device, ctx.sizes.cookbook_bicopter_T),
+        lambda prob: cookbook_u_init(COOKBOOK_BICOPTER, prob),
+        lambda ctx, prob, iters: _vehicle_anchor("bicopter", COOKBOOK_BICOPTER, ctx, prob, iters),
+        slow_batch=True, batch_methods=("recursive",)),
+}
+
+
+def _cookbook(ctx: _Ctx, workload: str) -> list[dict]:
     """One problem by ``ilqr`` (recursive, batch) and ``ilqr_lifted`` against the numpy script at the same
-    iteration count, then a batch of 64 starts (no anchor: the script solves one problem; ``per_one`` is the
-    batch's time over the same solver's time on one)."""
+    iteration count, then a batch of ``cookbook_batch`` starts (no anchor: the script solves one problem;
+    ``per_one`` is the batch's time over the same solver's time on one)."""
     from controllers.ilqr import ilqr
     from controllers.ilqr_lifted import ilqr_lifted
 
-    prob = cookbook_problem(ctx.dtype, ctx.device)
+    case = _COOKBOOK_CASES[workload]
+    prob = case.problem(ctx)
+    u0 = case.u_init(prob)
+    w0 = None if u0 is None else u0.reshape(-1)  # u = Ψ w with Ψ = I: w is u stacked in time
     solvers = {
-        "recursive": lambda pr: ilqr(pr, method="recursive", grad="none", options=ctx.options()),
-        "batch": lambda pr: ilqr(pr, method="batch", grad="none", options=ctx.options()),
-        "lifted": lambda pr: ilqr_lifted(pr),
+        "recursive": lambda pr: ilqr(pr, method="recursive", grad="none", options=ctx.options(), u_init=u0),
+        "batch": lambda pr: ilqr(pr, method="batch", grad="none", options=ctx.options(), u_init=u0),
+        "lifted": lambda pr: ilqr_lifted(pr, w_init=w0),
     }
     out, one = [], {}
     for method, solve in solvers.items():
         sol = solve(prob)
         iters = int(sol.status.iterations)
         ms = one[method] = ctx.time(lambda solve=solve: solve(prob))
-        r, err = _cookbook_anchor(ctx, iters)
-        extra = {"method": method, "iterations": iters, "ours_cost": float(sol.cost),
-                 "status": sol.status.reason_names()[0]}
+        r, err = case.run_anchor(ctx, prob, iters)
+        extra = {"system": case.system, "horizon": prob.T, "method": method, "iterations": iters,
+                 "ours_cost": float(sol.cost), "status": sol.status.reason_names()[0]}
         if err is None:
             ua = torch.tensor(r["u"], dtype=torch.float64).reshape(sol.u.shape)
             extra.update(anchor_cost=r["cost"], max_abs_diff_u=float((ua - sol.u.double().cpu()).abs().max()))
-        out.append(_record(ctx, "cookbook_manipulator", f"manipulator {method}", 1, ms,
-                           "numpy batch iLQR (cookbook §8.1/§9.1)", r.get("ms") if err is None else None,
+        out.append(_record(ctx, workload, f"{case.system} {method}", 1, ms, case.anchor,
+                           r.get("ms") if err is None else None,
                            None if err is None else f"numpy anchor failed: {err}", **extra))
     batch = _cookbook_starts(prob, ctx.sizes.cookbook_batch)
-    for method in ("recursive", "lifted"):
+    reps = ctx.sizes.cookbook_vehicle_batch_repeats if case.slow_batch else None
+    for method in case.batch_methods:
         sol = solvers[method](batch)
-        ms = ctx.time(lambda method=method: solvers[method](batch))
-        out.append(_record(ctx, "cookbook_manipulator", f"manipulator {method}", batch.x0.shape[0], ms,
-                           method=method, per_one=ms / one[method],
+        ms = ctx.time(lambda method=method: solvers[method](batch), reps)
+        out.append(_record(ctx, workload, f"{case.system} {method}", batch.x0.shape[0], ms,
+                           system=case.system, horizon=prob.T, method=method, per_one=ms / one[method],
                            iterations=int(sol.status.iterations.max()),
+                           iterations_median=float(sol.status.iterations.double().median()),
                            converged=int(sol.status.converged.sum())))
     return out
 
@@ -528,7 +656,9 @@ _RUNNERS: dict[str, Callable[[_Ctx], list[dict]]] = {
     "pendulum_swingup_batch64": lambda ctx: _swingups(ctx, "pendulum"),
     "car_parking_step": _car,
     "mpc_head_fwd_bwd": _mpc_head,
-    "cookbook_manipulator": _cookbook,
+    "cookbook_manipulator": lambda ctx: _cookbook(ctx, "cookbook_manipulator"),
+    "cookbook_car": lambda ctx: _cookbook(ctx, "cookbook_car"),
+    "cookbook_bicopter": lambda ctx: _cookbook(ctx, "cookbook_bicopter"),
 }
 
 
@@ -552,8 +682,8 @@ def _print(records: list[dict]) -> None:
     print_table(records, COLUMNS)
     print("ratio = anchor_ms / ours_ms (above 1: ours is faster); anchors run on the CPU in float64")
     for r in records:
-        if r["workload"] == "cookbook_manipulator" and "anchor_cost" in r:
-            print(f"cookbook manipulator ({r['method']}): cost ours {r['ours_cost']:.9g} after "
+        if r["workload"].startswith("cookbook_") and "anchor_cost" in r:
+            print(f"cookbook {r['system']} ({r['method']}): cost ours {r['ours_cost']:.9g} after "
                   f"{r['iterations']} iterations ({r['status']}), numpy anchor {r['anchor_cost']:.9g} after "
                   f"as many (max |du| {r['max_abs_diff_u']:.1e})")
         if r["workload"] == "pendulum_mpc_step" and "anchor_return" in r:
