@@ -19,6 +19,19 @@ from learning.demos import (
 )
 from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
 from learning.evaluate import EvalResult, evaluate
+from learning.ioc import (
+    IOCLoss,
+    IOCResult,
+    LQTCostModel,
+    MinimalIntervention,
+    SPDWeight,
+    ViaPoints,
+    fit_cost,
+    ioc_loss,
+    minimal_intervention,
+    normalize_scale,
+    time_weights,
+)
 from learning.policies import MPCExpert, as_policy, task_expert
 from learning.primitives import (
     DMP,
@@ -41,4 +54,6 @@ __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "Cart
            "Demos", "collect_demos", "train_mlp_policy", "train_mpc_cost", "bc_study",
            "Demonstrations", "expert_demos", "mpc_demos", "time_warp", "spatial_noise", "handwriting",
            "letter_stroke", "LETTERS", "DMP", "fit_dmp", "Reproduction", "ProMP", "fit_promp", "Tracking",
-           "integrator_chain", "reproduction_error", "via_point_error", "perturbation_recovery", "Recovery"]
+           "integrator_chain", "reproduction_error", "via_point_error", "perturbation_recovery", "Recovery",
+           "SPDWeight", "time_weights", "ViaPoints", "LQTCostModel", "normalize_scale", "IOCLoss", "ioc_loss",
+           "IOCResult", "fit_cost", "MinimalIntervention", "minimal_intervention"]
