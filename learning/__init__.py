@@ -32,6 +32,15 @@ from learning.ioc import (
     normalize_scale,
     time_weights,
 )
+from learning.manifold_demos import (
+    BodyRateSO3,
+    ManifoldStatistics,
+    MeanTrackingRun,
+    manifold_statistics,
+    orientation_demos,
+    stiffness_demos,
+    track_mean,
+)
 from learning.policies import MPCExpert, as_policy, task_expert
 from learning.primitives import (
     DMP,
@@ -56,4 +65,6 @@ __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "Cart
            "letter_stroke", "LETTERS", "DMP", "fit_dmp", "Reproduction", "ProMP", "fit_promp", "Tracking",
            "integrator_chain", "reproduction_error", "via_point_error", "perturbation_recovery", "Recovery",
            "SPDWeight", "time_weights", "ViaPoints", "LQTCostModel", "normalize_scale", "IOCLoss", "ioc_loss",
-           "IOCResult", "fit_cost", "MinimalIntervention", "minimal_intervention"]
+           "IOCResult", "fit_cost", "MinimalIntervention", "minimal_intervention", "orientation_demos",
+           "stiffness_demos", "manifold_statistics", "ManifoldStatistics", "BodyRateSO3", "track_mean",
+           "MeanTrackingRun"]
