@@ -307,6 +307,51 @@ def bench_cookbook(p: argparse.ArgumentParser) -> None:
                    help="torch intra-op threads, and numpy's in the anchor (1: per-core timings)")
 
 
+def _letter_list(s: str) -> tuple[str, ...]:
+    names = tuple(c.strip().upper() for c in s.split(",") if c.strip())
+    bad = [c for c in names if len(c) != 1 or not c.isalpha()]
+    if not names or bad:
+        raise argparse.ArgumentTypeError(f"expected single letters; got {', '.join(bad) or '(empty)'}")
+    return names
+
+
+def _check_bench_primitives(args: argparse.Namespace) -> str | None:
+    """``--n-demos`` ≥ 2 (a covariance), ``--T`` ≥ 10; ``--letters``: letters that
+    :func:`learning.demos.handwriting` knows (imported here, after ``--help``)."""
+    if args.n_demos is not None and args.n_demos < 2:
+        return f"argument --n-demos: expected at least 2 (a ProMP needs a covariance), got {args.n_demos}"
+    if args.T is not None and args.T < 10:
+        return f"argument --T: expected at least 10 samples, got {args.T}"
+    if args.letters is None:
+        return None
+    from learning.demos import LETTERS
+
+    bad = [c for c in args.letters if c not in LETTERS]
+    if bad:
+        return f"argument --letters: {', '.join(bad)} not among the handwriting letters {' '.join(LETTERS)}"
+    return None
+
+
+def bench_primitives(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--letters", nargs="+", type=_letter_list, action=_Joined, default=None, metavar="L",
+                   help="handwriting letters, one demo set each; space- or comma-separated (default: "
+                        "S C U N; --quick: S C)")
+    p.add_argument("--n-demos", type=positive_int, default=None, metavar="N",
+                   help="demonstrations per letter (default: 8; --quick: 4)")
+    p.add_argument("--T", type=positive_int, default=None, metavar="T",
+                   help="samples per demonstration, over 1 s (default: 100; --quick: 40)")
+    p.add_argument("--n-generate", type=positive_int, default=None, metavar="N",
+                   help="trajectories generated in the timed generation (default: 1000; --quick: 20)")
+    p.add_argument("--repeats", type=positive_int, default=None, metavar="N",
+                   help="timed calls per figure after a warm-up, the median is reported (default: 3; "
+                        "--quick: 1)")
+    p.add_argument("--quick", action="store_true", help="small sizes (a smoke run of seconds)")
+    _common(p, threads=None)
+    p.add_argument("--threads", type=thread_count, default=1, metavar="N",
+                   help="torch intra-op threads and numpy's BLAS threads (1: per-core timings)")
+    p.set_defaults(_check=_check_bench_primitives)
+
+
 # --------------------------------------------------------------------------------------- compare, learn
 
 
@@ -595,6 +640,9 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
     (("bench", "cookbook"), bench_cookbook, "liecontrol.bench.cookbook",
      "the cookbook manipulator, car and bicopter (seed 004 §9.1, §9.15, §9.16) vs the cookbook's own numpy "
      "algorithm, one problem and a batch"),
+    (("bench", "primitives"), bench_primitives, "liecontrol.bench.primitives",
+     "movement primitives as LQT (DMP, ProMP) vs DFKI's movement_primitives on handwriting demos: "
+     "reproduction, push recovery, via points, fit and generation time"),
     (("reproduce", "me2"), reproduce_me2, "liecontrol.reproduce.me2",
      f"pose prediction over a 300 ms horizon by the second-order Magnus (ME2) linearization (Table 1, "
      f"Figs. 2-4) of {ME2_PAPER}"),
