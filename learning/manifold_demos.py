@@ -35,10 +35,13 @@ SE(3), which has no bi-invariant metric, the fixed point is the group (exponenti
 affine-invariant ``Log`` in whitened Mandel coordinates; on S³ the sphere ``Log`` (Eq. 181) as an ambient
 4-vector, so Σ is ``(4, 4)`` of rank 3 with ``Σ μ = 0``; for ``q = μ ⊗ exp(ω/2)`` it is
 ``Log_μ(q) = μ ⊗ (0, ω/2)``, i.e. ``Σ_S³ = ¼ M Σ_ω Mᵀ`` with ``M`` the 4×3 matrix of ``v ↦ μ ⊗ (0, v)``.
-Quaternion double cover: each step's samples are first aligned to one sample's hemisphere, the mean is
-computed, the samples are re-aligned to the mean's hemisphere and the mean refined; the mean's sign is
+Quaternion double cover: each step's samples start aligned to one sample's hemisphere and are re-aligned
+to the *current* mean's hemisphere at every Gauss–Newton step (so every ``Log`` takes the short way, a
+rotation angle ≤ π: the SO(3) Karcher iteration in quaternion form); ``converged`` is the optimality
+residual checked at the returned mean with that final alignment, and Σ uses it too.  The mean's sign is
 then made continuous over time and fixed by making the largest-magnitude component of ``μ_0`` positive —
-so ``q`` and ``−q`` inputs give identical statistics.
+so ``q`` and ``−q`` inputs give identical statistics.  On SE(3) the tolerance is relative to the
+translation scale (:func:`manifold_statistics`).
 
 **Tracking** (:func:`track_mean`).  The mean path is the reference of the seed-003 error-state MPC
 (:func:`controllers.manifold_mpc.error_system`, Eq. 20–23, on a kinematic system: :class:`BodyRateSO3`
@@ -217,11 +220,24 @@ def _variability(ref_tangent: Tensor, n_demos: int, dt: float, generator: torch.
         raise ValueError(f"{fn}: argument 'n_demos' must be a positive int, got {n_demos!r}")
     T = ref_tangent.shape[0]
     path = Demonstrations(x=ref_tangent.expand(n_demos, *ref_tangent.shape).clone(), dt=dt)
-    path = time_warp(path, warp, generator)
+    path = _renaming(("strength", "warp", fn), time_warp, path, warp, generator)
     zero = Demonstrations(x=ref_tangent.new_zeros(n_demos, T, m), dt=dt)
-    eps = spatial_noise(zero, noise, generator, n_basis=n_basis, pin_ends=pin_ends).x
+    eps = _renaming(("scale", "noise", fn), spatial_noise, zero, noise, generator, n_basis=n_basis,
+                    pin_ends=pin_ends).x
     s = torch.linspace(0.0, 1.0, T, dtype=ref_tangent.dtype, device=ref_tangent.device)
     return path.x, eps * _envelope(envelope, s, fn)[:, None]
+
+
+def _renaming(names: tuple[str, str, str], f: Callable, *args: Any, **kwargs: Any):
+    """``f(*args, **kwargs)`` (a :mod:`learning.demos` helper); an error about its argument ``theirs`` is
+    re-raised naming this function's argument ``ours`` (``names = (theirs, ours, fn)``)."""
+    theirs, ours, fn = names
+    try:
+        return f(*args, **kwargs)
+    except (TypeError, ValueError) as e:
+        if f"'{theirs}'" not in str(e):
+            raise
+        raise type(e)(f"{fn}: " + str(e).replace(f"'{theirs}'", f"argument '{ours}'")) from e
 
 
 def _noise_record(noise) -> float | list[float]:
@@ -237,6 +253,23 @@ def _check_common(T: int, dtype, generator, fn: str) -> None:
         raise TypeError(f"{fn}: argument 'dtype' must be float32 or float64, got {dtype}")
     if not isinstance(generator, torch.Generator):
         raise TypeError(f"{fn}: argument 'generator' must be a torch.Generator (explicit randomness)")
+
+
+def _tangent_path(xi, T: int, m: int, dtype, fn: str) -> Tensor:
+    if not isinstance(xi, Tensor) or tuple(xi.shape) != (T, m) or not xi.dtype.is_floating_point:
+        raise ValueError(f"{fn}: argument 'tangent_path' must be a float tensor ({T}, {m}), got "
+                         f"{getattr(xi, 'shape', type(xi).__name__)}")
+    if not bool(torch.isfinite(xi).all()):
+        raise ValueError(f"{fn}: argument 'tangent_path' must be finite (it has NaN/inf entries)")
+    return xi.to(dtype)
+
+
+def _base_point(M, base, dtype, fn: str) -> Tensor:
+    ps = tuple(M.point_shape)
+    if not isinstance(base, Tensor) or tuple(base.shape) != ps or not base.dtype.is_floating_point:
+        raise ValueError(f"{fn}: argument 'base' must be one float tensor {ps} (a single base point), got "
+                         f"{tuple(base.shape) if isinstance(base, Tensor) else type(base).__name__}")
+    return _on_manifold(M, base.to(dtype), "base", fn)
 
 
 def orientation_demos(n_demos: int = 8, T: int = 50, *, generator: torch.Generator, group: str = "SO3",
@@ -265,14 +298,8 @@ def orientation_demos(n_demos: int = 8, T: int = 50, *, generator: torch.Generat
     M = SE3() if g == "SE3" else SO3()
     m = M.dim
     s = torch.linspace(0.0, 1.0, T, dtype=dtype)
-    if tangent_path is None:
-        xi = _default_tangent(g, s)
-    else:
-        if not isinstance(tangent_path, Tensor) or tuple(tangent_path.shape) != (T, m):
-            raise ValueError(f"{fn}: argument 'tangent_path' must be a tensor ({T}, {m}), got "
-                             f"{getattr(tangent_path, 'shape', type(tangent_path).__name__)}")
-        xi = tangent_path.to(dtype)
-    b = M.identity(dtype=dtype) if base is None else M.check_point(base.to(dtype), "base", fn)
+    xi = _default_tangent(g, s) if tangent_path is None else _tangent_path(tangent_path, T, m, dtype, fn)
+    b = M.identity(dtype=dtype) if base is None else _base_point(M, base, dtype, fn)
     xi_w, eps = _variability(xi, n_demos, dt, generator, noise, warp, envelope, pin_ends, n_basis, m, fn)
     pts = M.exp_at(M.exp_at(b, xi_w), eps)                                     # (N, T, *ps)
     ref = M.exp_at(b, xi).expand(n_demos, *pts.shape[1:])
@@ -335,8 +362,9 @@ class ManifoldStatistics(NamedTuple):
     """Per-time-step Gaussians on a manifold (:func:`manifold_statistics`); batch ``(*B,)``.
 
     mean ``(*B, T, *point_shape)``; covariance ``(*B, T, m, m)`` in the tangent representation at the mean
-    (module docstring); iterations ``(*B, T)`` Gauss–Newton steps; converged ``(*B, T)`` bool (last step
-    ≤ tol); group: the group name; manifold: the torchlie space.
+    (module docstring); iterations ``(*B, T)`` Gauss–Newton steps; converged ``(*B, T)`` bool (the
+    Gauss–Newton step ``1/N Σ Log_μ(x_i)``, i.e. the optimality residual, ≤ tol; on S³ checked at the
+    returned mean); group: the group name; manifold: the torchlie space.
     """
 
     mean: Tensor
@@ -360,6 +388,96 @@ def _canonical_sign(mu: Tensor) -> Tensor:
     return (cont * s0).unsqueeze(-1)
 
 
+def _check_solver_options(max_iter, tol, unbiased, fn: str) -> None:
+    if isinstance(max_iter, bool) or not isinstance(max_iter, int) or max_iter < 1:
+        raise ValueError(f"{fn}: argument 'max_iter' must be an int >= 1, got {max_iter!r}")
+    if tol is not None and (isinstance(tol, bool) or not isinstance(tol, (int, float))
+                            or not (0 < tol < math.inf)):
+        raise ValueError(f"{fn}: argument 'tol' must be None or a positive finite float, got {tol!r}")
+    if not isinstance(unbiased, bool):
+        raise TypeError(f"{fn}: argument 'unbiased' must be a bool, got {unbiased!r}")
+
+
+def _statistics_points(demos, group, fn: str):
+    """``(g, M, points (*B, N, T, *ps))`` from :func:`manifold_statistics`'s ``demos``/``group``."""
+    if isinstance(demos, Demonstrations):
+        g, M = _demos_group(demos, group, fn)
+        return g, M, demo_points(demos, g if not isinstance(group, SPD) else group)
+    if not isinstance(demos, Tensor):
+        raise TypeError(f"{fn}: argument 'demos' must be a Demonstrations or a tensor of points, got "
+                        f"{type(demos).__name__}")
+    if group is None:
+        raise ValueError(f"{fn}: argument 'group' is needed with a tensor of points (one of {GROUPS})")
+    g = _group_name(group, fn)
+    M = group_manifold(group, demos.shape[-1] if g == "SPD" and demos.dim() >= 2 else None)
+    k = len(M.point_shape)
+    if demos.dim() < k + 2 or tuple(demos.shape[demos.dim() - k:]) != tuple(M.point_shape):
+        shape = ", ".join(map(str, M.point_shape))
+        raise ValueError(f"{fn}: argument 'demos' must be points (*B, N, T, {shape}) for group '{g}', "
+                         f"got {tuple(demos.shape)}")
+    return g, M, demos
+
+
+def _on_manifold(M, x: Tensor, name: str, fn: str) -> Tensor:
+    """``M.check_point`` with an error that names only this function's arguments (no ``project``)."""
+    try:
+        return M.check_point(x, name, fn)
+    except ValueError as e:
+        msg = str(e).split("; pass project=True")[0]
+        raise ValueError(f"{msg}; project the points onto the manifold before calling {fn}") from e
+
+
+def _sample_cov(L: Tensor, unbiased: bool) -> Tensor:
+    """``1/(N−1) Σ_i L_i L_iᵀ`` (``1/N`` unless ``unbiased``) of tangent vectors ``(*B, N, m)``."""
+    n = L.shape[-2]
+    S = L.mT @ L / (n - 1 if unbiased else n)
+    return 0.5 * (S + S.mT)
+
+
+def _s3_statistics(M, x: Tensor, max_iter: int, tol: float | None, unbiased: bool):
+    """Karcher mean on S³ of ``x (*B, N, 4)`` with the samples re-aligned to the current mean's hemisphere
+    at every Gauss–Newton step: the SO(3) Karcher iteration in quaternion form.  Converged where the
+    residual ``‖1/N Σ Log_μ(±x_i)‖`` at the *returned* μ, with the signs aligned to it, is ≤ tol."""
+    tol = torch.finfo(x.dtype).eps ** 0.75 if tol is None else float(tol)
+    x = hemisphere_align(x, x[..., :1, :])
+    mu = x[..., 0, :]
+    batch = mu.shape[:-1]
+    iterations = torch.zeros(batch, dtype=torch.int64, device=x.device)
+    converged = torch.zeros(batch, dtype=torch.bool, device=x.device)
+    failed = torch.zeros_like(converged)
+    for i in range(max_iter + 1):
+        active = ~(converged | failed)
+        if not bool(active.any()):
+            break
+        u = M.log_at(mu.unsqueeze(-2), hemisphere_align(x, mu.unsqueeze(-2)), check=False).mean(-2)
+        finite = torch.isfinite(u).all(-1)
+        failed = failed | (active & ~finite)
+        converged = converged | (active & finite & (torch.linalg.vector_norm(u, dim=-1) <= tol))
+        step = active & finite & ~converged
+        if i == max_iter or not bool(step.any()):
+            continue
+        u = torch.where(step.unsqueeze(-1), u, torch.zeros_like(u))
+        mu = torch.where(step.unsqueeze(-1), M.exp_at(mu, u, check=False), mu)
+        iterations = iterations + step.to(torch.int64)
+    L = M.log_at(mu.unsqueeze(-2), hemisphere_align(x, mu.unsqueeze(-2)), check=False)
+    return mu, _sample_cov(L, unbiased), iterations, converged
+
+
+def _se3_statistics(M, x: Tensor, max_iter: int, tol: float | None, unbiased: bool):
+    """:func:`fit_gaussian` on SE(3) points ``(*B, N, 4, 4)`` in translation-normalized coordinates: the
+    translations divided by ``s = max(1, max_i ‖t_i‖)`` per element (``(R, t) ↦ (R, t/s)`` is a group
+    automorphism, ``Log`` maps to ``[ρ/s, ω]``), so the step tolerance is relative to the translation scale;
+    mean and covariance are mapped back exactly."""
+    s = torch.clamp(torch.linalg.vector_norm(x[..., :3, 3], dim=-1).amax(-1), min=1.0)     # (*B,)
+    one = torch.ones_like(s)
+    col = torch.stack([1 / s, 1 / s, 1 / s, one], -1).unsqueeze(-1)                       # (*B, 4, 1)
+    W = torch.cat([torch.ones(*s.shape, 4, 3, dtype=x.dtype, device=x.device), col], -1)  # (*B, 4, 4)
+    res = fit_gaussian(M, x * W.unsqueeze(-3), max_iter=max_iter, tol=tol, unbiased=unbiased)
+    d = torch.stack([s, s, s, one, one, one], -1)                                          # (*B, 6)
+    cov = res.covariance * (d.unsqueeze(-1) * d.unsqueeze(-2))
+    return res.mean / W, cov, res.iterations, res.converged
+
+
 def manifold_statistics(demos: Demonstrations | Tensor, group: str | Any | None = None, *, max_iter: int = 30,
                         tol: float | None = None, unbiased: bool = True) -> ManifoldStatistics:
     """Karcher mean and tangent covariance per time step (seed 004 §12.3; module docstring).
@@ -367,46 +485,36 @@ def manifold_statistics(demos: Demonstrations | Tensor, group: str | Any | None 
     demos: a :class:`~learning.demos.Demonstrations` (flat layout of the module table; ``group`` defaults
     to ``meta["group"]``), or points ``(*B, N, T, *point_shape)`` with ``group`` given (a name of
     :data:`GROUPS` or the torchlie space).  All ``(*B, T)`` means are one batched Gauss–Newton solve
-    (:func:`torchlie.manifolds.fit_gaussian`; ``max_iter``, ``tol`` passed on); Σ uses ``1/(N−1)``
-    (``unbiased=False``: ``1/N``; N = 1 needs it).  Points off the manifold raise ``ValueError``
-    naming the batch index.  Differentiable in the points.
+    (:func:`torchlie.manifolds.fit_gaussian`; ``max_iter`` an int ≥ 1; ``tol`` a positive float, default
+    eps^0.75 of the dtype, on the norm of the step / optimality residual ``1/N Σ Log_μ(x_i)``).  On SE(3)
+    the residual is measured with the translations divided by ``s = max(1, max_i ‖t_i‖)`` of each step's
+    samples, so the tolerance is *relative* to the data's translation scale (absolute for ``‖t‖ ≤ 1``):
+    float32 poses with translations of 1000 converge like those of 1.  Σ uses ``1/(N−1)``
+    (``unbiased=False``: ``1/N``; N = 1 needs it; ``unbiased`` must be a bool).  On S³ ``converged`` is
+    the residual checked at the returned mean with every sample aligned to its hemisphere, i.e. a Karcher
+    mean of the rotations.  Points off the manifold raise ``ValueError`` naming the batch index.
+    Differentiable in the points.
     """
     fn = "manifold_statistics"
-    if isinstance(demos, Demonstrations):
-        g, M = _demos_group(demos, group, fn)
-        pts = demo_points(demos, g if not isinstance(group, SPD) else group)
-    elif isinstance(demos, Tensor):
-        if group is None:
-            raise ValueError(f"{fn}: argument 'group' is needed with a tensor of points (one of {GROUPS})")
-        g = _group_name(group, fn)
-        M = group_manifold(group, demos.shape[-1] if g == "SPD" and demos.dim() >= 2 else None)
-        pts = demos
-        k = len(M.point_shape)
-        if pts.dim() < k + 2 or tuple(pts.shape[pts.dim() - k:]) != tuple(M.point_shape):
-            shape = ", ".join(map(str, M.point_shape))
-            raise ValueError(f"{fn}: argument 'demos' must be points (*B, N, T, {shape}) for group '{g}', "
-                             f"got {tuple(pts.shape)}")
-    else:
-        raise TypeError(f"{fn}: argument 'demos' must be a Demonstrations or a tensor of points, got "
-                        f"{type(demos).__name__}")
+    _check_solver_options(max_iter, tol, unbiased, fn)
+    g, M, pts = _statistics_points(demos, group, fn)
     if pts.dtype not in _DTYPES:
         raise TypeError(f"{fn}: the points must be float32 or float64, got {pts.dtype}")
     k = len(M.point_shape)
     n_samples = pts.shape[pts.dim() - k - 2]
+    if n_samples == 0:
+        raise ValueError(f"{fn}: argument 'demos' holds no demonstrations (N = 0)")
     if unbiased and n_samples < 2:
         raise ValueError(f"{fn}: the unbiased covariance needs N >= 2 demos, got {n_samples}; pass "
                          "unbiased=False")
-    pts = M.check_point(pts, "demos", fn)                                   # index (*B, N, T) if off
+    pts = _on_manifold(M, pts, "demos", fn)                                  # index (*B, N, T) if off
     x = pts.movedim(pts.dim() - k - 2, pts.dim() - k - 1)                   # (*B, T, N, *ps)
     if g == "S3":
-        x = hemisphere_align(x, x[..., :1, :])                               # one sample's hemisphere
-        first = fit_gaussian(M, x, max_iter=max_iter, tol=tol, unbiased=unbiased)
-        x = hemisphere_align(x, first.mean.unsqueeze(-2))                    # the mean's hemisphere
-        res = fit_gaussian(M, x, init=first.mean, max_iter=max_iter, tol=tol, unbiased=unbiased)
-        sign = _canonical_sign(res.mean)
-        mean, cov = res.mean * sign, res.covariance                          # Σ is even in the sign
-        iterations = first.iterations + res.iterations
-        return ManifoldStatistics(mean, cov, iterations, res.converged, g, M)
+        mean, cov, iterations, converged = _s3_statistics(M, x, max_iter, tol, unbiased)
+        mean = mean * _canonical_sign(mean)                                  # Σ is even in the sign
+        return ManifoldStatistics(mean, cov, iterations, converged, g, M)
+    if g == "SE3":
+        return ManifoldStatistics(*_se3_statistics(M, x, max_iter, tol, unbiased), g, M)
     res = fit_gaussian(M, x, max_iter=max_iter, tol=tol, unbiased=unbiased)
     return ManifoldStatistics(res.mean, res.covariance, res.iterations, res.converged, g, M)
 
@@ -476,26 +584,98 @@ def _pad_time(t: Tensor, k: int, extra: int) -> Tensor:
     return torch.cat([t, last.repeat(*reps)], t.dim() - k - 1)
 
 
-def _track_args(system, mean: Tensor, covariance: Tensor, x0: Tensor, horizon, R, regularization, u_ref,
-                steps, fn: str):
-    """:func:`track_mean`'s arguments checked: ``(M, n, m, k, T, steps, R (m, m), u_ref)``."""
-    M = getattr(system, "manifold", None)
-    if M is None or not getattr(M, "has_boxplus", False) or not hasattr(system, "f"):
-        raise TypeError(f"{fn}: argument 'system' must be a ManifoldSystem (manifold with ⊞/⊟/⊕, m, dt, f), "
-                        f"got {type(system).__name__}")
-    n, m, k = M.dim, int(system.m), len(M.point_shape)
-    for name, t in (("mean", mean), ("covariance", covariance), ("x0", x0)):
+def _track_tensors(mean, covariance, x0, u_ref, fn: str) -> None:
+    """Types, dtypes and devices: every tensor argument float32/float64 with the mean's dtype and device."""
+    for name, t in (("mean", mean), ("covariance", covariance), ("x0", x0), ("u_ref", u_ref)):
+        if name == "u_ref" and t is None:
+            continue
         if not isinstance(t, Tensor) or t.dtype not in _DTYPES:
             raise TypeError(f"{fn}: argument '{name}' must be a float32/float64 tensor, got "
                             f"{getattr(t, 'dtype', type(t).__name__)}")
-    if mean.dim() < k + 1 or tuple(mean.shape[mean.dim() - k:]) != tuple(M.point_shape) or \
-            mean.shape[mean.dim() - k - 1] < 2:
-        raise ValueError(f"{fn}: argument 'mean' must be (*B, T, {', '.join(map(str, M.point_shape))}) with "
+        if t.dtype != mean.dtype:
+            raise TypeError(f"{fn}: argument '{name}' has dtype {t.dtype} but 'mean' has {mean.dtype}; "
+                            "they must match (nothing is cast silently)")
+        if t.device != mean.device:
+            raise ValueError(f"{fn}: argument '{name}' is on {t.device} but 'mean' is on {mean.device}")
+
+
+def _track_shapes(M, m: int, mean: Tensor, covariance: Tensor, x0: Tensor, u_ref, fn: str):
+    """Shapes checked and broadcast like torch: ``(T, mean, covariance, x0, u_ref)`` with one batch ``B``."""
+    n, k, ps = M.dim, len(M.point_shape), tuple(M.point_shape)
+    if mean.dim() < k + 1 or tuple(mean.shape[mean.dim() - k:]) != ps or mean.shape[mean.dim() - k - 1] < 2:
+        raise ValueError(f"{fn}: argument 'mean' must be (*B, T, {', '.join(map(str, ps))}) with "
                          f"T >= 2, got {tuple(mean.shape)}")
     T = mean.shape[mean.dim() - k - 1]
     if covariance.dim() < 3 or covariance.shape[-2:] != (n, n) or covariance.shape[-3] != T:
         raise ValueError(f"{fn}: argument 'covariance' must be (*B, {T}, {n}, {n}), got "
                          f"{tuple(covariance.shape)}")
+    if x0.dim() < k or tuple(x0.shape[x0.dim() - k:]) != ps:
+        raise ValueError(f"{fn}: argument 'x0' must be (*B, {', '.join(map(str, ps))}), got "
+                         f"{tuple(x0.shape)}")
+    if u_ref is not None and (u_ref.dim() < 2 or u_ref.shape[-2:] != (T - 1, m)):
+        raise ValueError(f"{fn}: argument 'u_ref' must be (*B, {T - 1}, {m}), got {tuple(u_ref.shape)}")
+    batches = {"mean": mean.shape[:-k - 1], "covariance": covariance.shape[:-3],
+               "x0": x0.shape[:x0.dim() - k]}
+    if u_ref is not None:
+        batches["u_ref"] = u_ref.shape[:-2]
+    try:
+        B = torch.broadcast_shapes(*batches.values())
+    except RuntimeError:
+        got = ", ".join(f"'{a}' {tuple(b)}" for a, b in batches.items())
+        raise ValueError(f"{fn}: the batch shapes of the arguments must broadcast, got {got}") from None
+    mean = mean.expand(*B, *mean.shape[-k - 1:])
+    u_ref = None if u_ref is None else u_ref.expand(*B, T - 1, m)
+    return T, mean, covariance.expand(*B, T, n, n), x0.expand(*B, *ps), u_ref
+
+
+def _check_covariance(cov: Tensor, fn: str) -> None:
+    """``ValueError`` unless every finite ``(n, n)`` block is symmetric (relative asymmetry ≤ √eps) and
+    positive semi-definite (smallest eigenvalue ≥ −√eps·largest magnitude).  Blocks with a NaN/inf entry
+    are left to the solve: they only spoil their own batch element."""
+    tol = math.sqrt(torch.finfo(cov.dtype).eps)
+    fin = torch.isfinite(cov).all(-1).all(-1)
+    C = torch.where(fin[..., None, None], cov, torch.zeros_like(cov))
+    scale = torch.clamp(C.abs().amax(dim=(-1, -2)), min=torch.finfo(C.dtype).tiny)
+    asym = (C - C.mT).abs().amax(dim=(-1, -2)) / scale
+    if bool((asym > tol).any()):
+        raise ValueError(f"{fn}: argument 'covariance' must be symmetric: relative asymmetry "
+                         f"{float(asym.max()):.3g} > {tol:.2g}")
+    lam = torch.linalg.eigvalsh(0.5 * (C + C.mT))
+    bad = lam[..., 0] < -tol * lam.abs().amax(-1)
+    if bool(bad.any()):
+        raise ValueError(f"{fn}: argument 'covariance' must be positive semi-definite: smallest eigenvalue "
+                         f"{float(lam[..., 0].min()):.3g} (batch index {tuple(bad.nonzero()[0].tolist())})")
+
+
+def _track_R(R, m: int, mean: Tensor, fn: str) -> Tensor:
+    if isinstance(R, (int, float)) and not isinstance(R, bool):
+        if not (0 < R < math.inf):
+            raise ValueError(f"{fn}: argument 'R' must be positive, got {R!r}")
+        return float(R) * torch.eye(m, dtype=mean.dtype, device=mean.device)
+    if not isinstance(R, Tensor) or R.shape not in ((m,), (m, m)):
+        raise ValueError(f"{fn}: argument 'R' must be a positive float or a ({m},)/({m}, {m}) tensor, got "
+                         f"{getattr(R, 'shape', R)!r}")
+    if R.dtype != mean.dtype or R.device != mean.device:
+        raise TypeError(f"{fn}: argument 'R' has dtype {R.dtype} on {R.device} but 'mean' has {mean.dtype} "
+                        f"on {mean.device}; they must match (nothing is cast silently)")
+    Rm = torch.diag_embed(R) if R.dim() == 1 else R
+    if not bool(torch.isfinite(Rm).all()) or not torch.allclose(Rm, Rm.mT) or \
+            not bool((torch.linalg.eigvalsh(Rm) > 0).all()):
+        raise ValueError(f"{fn}: argument 'R' must be symmetric positive definite")
+    return Rm
+
+
+def _track_args(system, mean: Tensor, covariance: Tensor, x0: Tensor, horizon, R, regularization, u_ref,
+                steps, fn: str):
+    """:func:`track_mean`'s arguments checked and broadcast to one batch ``B``:
+    ``(M, n, m, k, T, steps, R (m, m), mean, covariance, x0, u_ref)``."""
+    M = getattr(system, "manifold", None)
+    if M is None or not getattr(M, "has_boxplus", False) or not hasattr(system, "f"):
+        raise TypeError(f"{fn}: argument 'system' must be a ManifoldSystem (manifold with ⊞/⊟/⊕, m, dt, f), "
+                        f"got {type(system).__name__}")
+    n, m, k = M.dim, int(system.m), len(M.point_shape)
+    _track_tensors(mean, covariance, x0, u_ref, fn)
+    T, mean, covariance, x0, u_ref = _track_shapes(M, m, mean, covariance, x0, u_ref, fn)
     if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
         raise ValueError(f"{fn}: argument 'horizon' must be a positive int, got {horizon!r}")
     if isinstance(regularization, bool) or not isinstance(regularization, (int, float)) or \
@@ -505,28 +685,30 @@ def _track_args(system, mean: Tensor, covariance: Tensor, x0: Tensor, horizon, R
     steps = T - 1 if steps is None else steps
     if isinstance(steps, bool) or not isinstance(steps, int) or not (1 <= steps <= T - 1):
         raise ValueError(f"{fn}: argument 'steps' must be an int in [1, {T - 1}], got {steps!r}")
-    dtype, dev = mean.dtype, mean.device
-    if isinstance(R, (int, float)) and not isinstance(R, bool):
-        if not (0 < R < math.inf):
-            raise ValueError(f"{fn}: argument 'R' must be positive, got {R!r}")
-        Rm = float(R) * torch.eye(m, dtype=dtype, device=dev)
-    elif isinstance(R, Tensor) and R.shape in ((m,), (m, m)):
-        Rm = torch.diag_embed(R) if R.dim() == 1 else R
-        Rm = Rm.to(dtype=dtype, device=dev)
-        if not bool(torch.isfinite(Rm).all()) or not torch.allclose(Rm, Rm.mT) or \
-                not bool((torch.linalg.eigvalsh(Rm) > 0).all()):
-            raise ValueError(f"{fn}: argument 'R' must be symmetric positive definite")
-    else:
-        raise ValueError(f"{fn}: argument 'R' must be a positive float or a ({m},)/({m}, {m}) tensor, got "
-                         f"{getattr(R, 'shape', R)!r}")
+    Rm = _track_R(R, m, mean, fn)
+    _check_covariance(covariance, fn)
     M.check(mean, "mean")
     M.check(x0, "x0")
     if u_ref is None:
         u_ref = reference_controls(M, mean, system.dt)
-    elif not isinstance(u_ref, Tensor) or u_ref.dim() < 2 or u_ref.shape[-2:] != (T - 1, m):
-        raise ValueError(f"{fn}: argument 'u_ref' must be (*B, {T - 1}, {m}), got "
-                         f"{getattr(u_ref, 'shape', type(u_ref).__name__)}")
-    return M, n, m, k, T, steps, Rm, u_ref
+    elif not bool(torch.isfinite(u_ref).all()):
+        raise ValueError(f"{fn}: argument 'u_ref' must be finite (it has NaN/inf entries)")
+    return M, n, m, k, T, steps, Rm, mean, covariance, x0, u_ref
+
+
+def _stage_data(mean: Tensor, covariance: Tensor, u_ref: Tensor, regularization: float, k: int, T: int,
+                last: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Mean ``(*B, L+1, *ps)``, precisions ``(Σ_t + λI)⁻¹`` ``(*B, L+1, n, n)`` and controls
+    ``(*B, L, m)`` up to stage ``L = max(last, T-1)``: the last mean/precision and a zero control held."""
+    n = covariance.shape[-1]
+    eye = torch.eye(n, dtype=mean.dtype, device=mean.device)
+    prec = torch.linalg.inv(0.5 * (covariance + covariance.mT) + regularization * eye)
+    prec = 0.5 * (prec + prec.mT)
+    pad = last + 1 - T
+    if pad > 0:
+        mean, prec = _pad_time(mean, k, pad), _pad_time(prec, 2, pad)
+    zeros = u_ref.new_zeros(*u_ref.shape[:-2], max(last - (T - 1), 0), u_ref.shape[-1])
+    return mean, prec, torch.cat([u_ref, zeros], -2)
 
 
 def track_mean(system, mean: Tensor, covariance: Tensor, x0: Tensor, *, horizon: int = 10,
@@ -545,23 +727,19 @@ def track_mean(system, mean: Tensor, covariance: Tensor, x0: Tensor, *, horizon:
     system: a :class:`~controllers.manifold_mpc.ManifoldSystem` on the mean's manifold (e.g.
     :class:`BodyRateSO3`, ``BodyTwistSE3``); mean ``(*B, T, *point_shape)``; covariance ``(*B, T, n, n)``
     (e.g. :func:`manifold_statistics`); x0 ``(*B, *point_shape)``; R a float (times I) or ``(m,)``/``(m, m)``;
-    u_ref ``(*B, T-1, m)`` (default :func:`reference_controls`, exact for ``f(x, u) = u``); steps default T-1.
+    u_ref ``(*B, T-1, m)`` finite (default :func:`reference_controls`, exact for ``f(x, u) = u``); steps
+    default T-1.  The batch shapes ``*B`` of mean, covariance, x0 and u_ref broadcast like torch (e.g. one
+    start for a batch of means); incompatible ones raise ``ValueError``.  All tensors, R included, must
+    have the mean's dtype and device (``TypeError`` otherwise; nothing is cast).  The covariance must be
+    symmetric positive semi-definite (relative asymmetry and negative eigenvalues within √eps of the
+    dtype, else ``ValueError``); that round-off asymmetry is removed by using ``½(Σ + Σᵀ)``.  A block with
+    a NaN/inf entry is not rejected: it only spoils its own batch element.
     """
     fn = "track_mean"
-    M, n, m, k, T, steps, Rm, u_ref = _track_args(system, mean, covariance, x0, horizon, R, regularization,
-                                                  u_ref, steps, fn)
-    dtype, dev = mean.dtype, mean.device
+    M, n, m, k, T, steps, Rm, mean, covariance, x0, u_ref = _track_args(
+        system, mean, covariance, x0, horizon, R, regularization, u_ref, steps, fn)
     N = horizon
-    eye = torch.eye(n, dtype=dtype, device=dev)
-    cov = 0.5 * (covariance + covariance.mT)
-    prec = torch.linalg.inv(cov + regularization * eye)
-    prec = 0.5 * (prec + prec.mT)
-    pad = steps + N + 1 - T
-    if pad > 0:
-        mean_p, prec_p = _pad_time(mean, k, pad), _pad_time(prec, 2, pad)
-    else:
-        mean_p, prec_p = mean, prec
-    u_p = torch.cat([u_ref, u_ref.new_zeros(*u_ref.shape[:-2], max(steps + N - (T - 1), 0), m)], -2)
+    mean_p, prec_p, u_p = _stage_data(mean, covariance, u_ref, regularization, k, T, steps + N)
     x = x0
     xs, us, gains, reasons = [x0], [], [], []
     for t in range(steps):
