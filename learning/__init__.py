@@ -19,6 +19,13 @@ from learning.demos import (
 )
 from learning.envs import TASKS, CartPoleSwingUp, PendulumSwingUp, Task, TaskEnv
 from learning.evaluate import EvalResult, evaluate
+from learning.imitation import (
+    identifiable_combinations,
+    imitation_loss,
+    imitation_setup,
+    imitation_study,
+    learn_dynamics,
+)
 from learning.ioc import (
     IOCLoss,
     IOCResult,
@@ -67,4 +74,5 @@ __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "Cart
            "SPDWeight", "time_weights", "ViaPoints", "LQTCostModel", "normalize_scale", "IOCLoss", "ioc_loss",
            "IOCResult", "fit_cost", "MinimalIntervention", "minimal_intervention", "orientation_demos",
            "stiffness_demos", "manifold_statistics", "ManifoldStatistics", "BodyRateSO3", "track_mean",
-           "MeanTrackingRun"]
+           "MeanTrackingRun", "learn_dynamics", "imitation_study", "imitation_setup", "imitation_loss",
+           "identifiable_combinations"]
