@@ -6,6 +6,7 @@ imported only by :mod:`learning.sb3`, :mod:`learning.mpc_policy` and (inside its
 :mod:`learning.baselines`, none of which this package imports.
 """
 
+from learning import distributed
 from learning.bc import Demos, bc_study, collect_demos, train_mlp_policy, train_mpc_cost
 from learning.demos import (
     LETTERS,
@@ -75,4 +76,4 @@ __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "Cart
            "IOCResult", "fit_cost", "MinimalIntervention", "minimal_intervention", "orientation_demos",
            "stiffness_demos", "manifold_statistics", "ManifoldStatistics", "BodyRateSO3", "track_mean",
            "MeanTrackingRun", "learn_dynamics", "imitation_study", "imitation_setup", "imitation_loss",
-           "identifiable_combinations"]
+           "identifiable_combinations", "distributed"]

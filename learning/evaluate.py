@@ -53,6 +53,7 @@ import torch
 from gymnasium.vector import AutoresetMode
 from torch import Tensor
 
+from learning import distributed as _dist
 from learning.envs.single import as_action, as_device, as_dtype, int_arg, make_task
 from learning.envs.task import Task
 from learning.policies import as_policy
@@ -314,7 +315,7 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
              max_episode_steps: int | None = None, task_kwargs: dict | None = None,
              device: torch.device | str = "cpu", dtype=torch.float64, progress: bool = True,
              timing_batch1: bool = True, timing_steps: int | None = None,
-             compile: bool = False) -> EvalResult:
+             compile: bool = False, distributed: bool = True) -> EvalResult:
     """Run ``policy`` on one episode per seed, ``num_envs`` episodes at a time, and measure it.
 
     Args:
@@ -331,6 +332,12 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
         timing_batch1: also time the policy at batch 1 on ``timing_steps`` steps (default: a whole
             episode, so that the two timings see the same mix of swing-up and balancing steps) of one
             environment, the first seed's; run after the evaluation, the policy reset before and after.
+        distributed: under torchrun (an initialized process group with ``W > 1`` ranks, every rank calling
+            ``evaluate`` with the same arguments) each rank runs one contiguous block of the seeds
+            (:func:`learning.distributed.shard`, ``num_envs`` episodes at a time) and every rank returns the
+            same merged result, per-episode arrays in seed order (``meta["world_size"] = W``; ``step_ms`` is
+            every rank's calls, ``step_ms_batch1`` rank 0's, ``wall_time_s`` the slowest rank's, progress is
+            shown on rank 0).  ``False`` (or a single process) evaluates every seed here.
 
     Returns:
         an :class:`EvalResult` (module docstring for what is measured and how failures are handled).
@@ -351,6 +358,10 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
         E = len(seeds)
         if E < 1:
             raise ValueError("evaluate: argument 'seeds' is empty")
+    if distributed and _dist.world_size() > 1:
+        return _evaluate_sharded(policy, task, seeds, num_envs=num_envs, max_episode_steps=max_episode_steps,
+                                 device=device, dtype=dtype, progress=progress, timing_batch1=timing_batch1,
+                                 timing_steps=timing_steps, compile=compile)
     N = min(num_envs, E)
     T = task.max_episode_steps if max_episode_steps is None else int_arg(max_episode_steps,
                                                                          "max_episode_steps", "evaluate")
@@ -508,6 +519,29 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
               "max_episode_steps": T, "dtype": str(dtype).replace("torch.", ""), "device": str(device),
               "dt": float(torch.as_tensor(task.system.dt).max()), "wall_time_s": wall},
         **res)
+
+
+def _evaluate_sharded(policy: Any, task: Task, seeds: list[int], **kw: Any) -> EvalResult:
+    """:func:`evaluate` of this rank's block of ``seeds``, merged with the other ranks' (all ranks return the
+    same result)."""
+    lo, hi = _dist.shard_bounds(len(seeds))
+    main = _dist.is_main()
+    kw.update(progress=kw["progress"] and main, timing_batch1=kw["timing_batch1"] and main)
+    mine = evaluate(policy, task, seeds=seeds[lo:hi], distributed=False, **kw) if hi > lo else None
+    return _merge([r for r in _dist.gather_objects(mine) if r is not None])
+
+
+def _merge(parts: list[EvalResult]) -> EvalResult:
+    """One :class:`EvalResult` from the ranks' results (in rank order, i.e. seed order)."""
+    cat = {k: np.concatenate([getattr(p, k) for p in parts]) for k in EPISODE_FIELDS}
+    meta = dict(parts[0].meta)
+    meta.update(episodes=int(cat["seeds"].shape[0]), world_size=_dist.world_size(),
+                wall_time_s=max(float(p.meta["wall_time_s"]) for p in parts))
+    return EvalResult(**cat, error_curve=np.concatenate([p.error_curve for p in parts]),
+                      errors=[e for p in parts for e in p.errors],
+                      step_ms=np.concatenate([p.step_ms for p in parts]),
+                      step_ms_batch1=parts[0].step_ms_batch1,
+                      solver_steps=np.concatenate([p.solver_steps for p in parts]), meta=meta)
 
 
 def _time_batch1(pol, task: Task, seed: int, steps: int, T: int, device, dtype, m: int) -> list[float]:

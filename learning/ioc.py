@@ -67,6 +67,7 @@ from torch import Tensor, nn
 from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
 from controllers.problem import LQProblem, Reason, SolverStatus
+from learning import distributed as _dist
 from learning.demos import Demonstrations
 
 __all__ = ["SPDWeight", "time_weights", "ViaPoints", "LQTCostModel", "normalize_scale", "IOCLoss", "ioc_loss",
@@ -704,6 +705,16 @@ def fit_cost(demos: Demonstrations | Tensor, dynamics: Any, model: LQTCostModel,
     ``T = 5..30`` and on par at ``T = 60..100``, where its ``O((T m)³)`` cost meets the Riccati sweep's
     Python loop over time; another machine measured ``"riccati"`` faster at ``T = 30`` — time both.
 
+    **Under torchrun** (:mod:`learning.distributed`; an initialized process group with ``W > 1`` ranks, every
+    rank calling ``fit_cost`` with the same demos and model): the demos' batch dims are flattened to
+    ``(N, T+1, n)`` (``N >= W`` needed) and each rank solves one contiguous block of them; the model is
+    wrapped in ``DistributedDataParallel`` (which starts every rank from rank 0's parameters).  The loss is
+    the *global* mean over the usable demos — each rank backpropagates ``W · (its sum) / N_usable`` and DDP
+    averages the gradients over the ``W`` ranks, so the gradient is the single-process one up to the order
+    of the floating-point sums — and its value and the history's counters are all-reduced, so L-BFGS/Adam
+    take the same step on every rank and the parameters stay identical.  The result (per-demo status,
+    reproductions, usability) is gathered back in demo order on every rank.  A single process is unchanged.
+
     Returns:
         :class:`IOCResult` (the fitted copy of ``model``, history, status, reproductions).
     """
@@ -714,39 +725,87 @@ def fit_cost(demos: Demonstrations | Tensor, dynamics: Any, model: LQTCostModel,
     params = [p for p in model.parameters() if p.requires_grad]
     if not params:
         raise ValueError(f"{own}: the model has no learnable parameter")
+    shards = _Shards(x_d, u_d, model, own) if _dist.world_size() > 1 else None
+    if shards is not None:
+        x_d, u_d = shards.x, shards.u
     hist: dict[str, list[float]] = {"loss": [], "not_converged": [], "excluded_not_converged": [],
                                     "unusable": []}
     warm: dict[str, Tensor | None] = {"u": None if u_d is None else u_d.detach()}
 
-    def evaluate() -> IOCLoss:
-        out = ioc_loss(model, dynamics, x_d, u_d, solver=solver, control_weight=control_weight,
+    def evaluate() -> tuple[IOCLoss, Tensor]:
+        cost = model if shards is None else shards.ddp()
+        out = ioc_loss(cost, dynamics, x_d, u_d, solver=solver, control_weight=control_weight,
                        u_init=warm["u"] if solver == "ilqr" else None, options=options,
                        unconverged=unconverged)
-        if not bool(out.usable.any()):
+        out, objective, counts = (out, out.loss, _counts(out)) if shards is None else shards.reduce(out)
+        if counts[0] == 0:
             raise _no_usable_demo(out, own)
         if solver == "ilqr":
             fin = torch.isfinite(out.u).all((-1, -2), keepdim=True)
             warm["u"] = torch.where(fin, out.u.detach(), out.u.new_zeros(()))
-        nc = ~out.status.converged
         hist["loss"].append(float(out.loss.detach()))
-        hist["not_converged"].append(int(nc.sum()))
-        hist["excluded_not_converged"].append(int((nc & ~out.usable & torch.isfinite(out.per_demo)).sum()))
-        hist["unusable"].append(int((~out.usable).sum()))
-        return out
+        for key, c in zip(("not_converged", "excluded_not_converged", "unusable"), counts[1:]):
+            hist[key].append(c)
+        return out, objective
 
     _optimize(evaluate, params, model, optimizer, steps, lr, tol, hist)
     with torch.no_grad():
-        final = evaluate()
+        final, _ = evaluate()
+    if shards is not None:
+        final = shards.gather(final)
     return IOCResult(model=model, loss=float(final.loss), history=hist, status=final.status,
                      x=final.x.detach(), u=final.u.detach(), usable=final.usable)
+
+
+def _counts(out: IOCLoss) -> list[int]:
+    """``[usable, not converged, excluded not converged, unusable]`` demos of one evaluation."""
+    nc = ~out.status.converged
+    excl = nc & ~out.usable & torch.isfinite(out.per_demo)
+    return [int(out.usable.sum()), int(nc.sum()), int(excl.sum()), int((~out.usable).sum())]
+
+
+class _Shards:
+    """This rank's block of the demos under torchrun and the collectives of :func:`fit_cost`."""
+
+    def __init__(self, x_d: Tensor, u_d: Tensor | None, model: LQTCostModel, own: str):
+        self.batch = x_d.shape[:-2]
+        self.n = math.prod(self.batch)
+        self.w = _dist.world_size()
+        if self.n < self.w:
+            raise ValueError(f"{own}: {self.n} demos cannot be shared by {self.w} ranks (at least one each)")
+        sl = _dist.shard(self.n)
+        self.x = x_d.reshape(self.n, *x_d.shape[-2:])[sl]
+        self.u = None if u_d is None else u_d.reshape(self.n, *u_d.shape[-2:])[sl]
+        self.ddp = _dist.wrap_ddp(model)
+
+    def reduce(self, out: IOCLoss) -> tuple[IOCLoss, Tensor, list[int]]:
+        """``(out with the global loss, the objective to backpropagate, the global counts)``: one
+        all-reduce of ``[sum of usable errors, counts]``; the objective ``W · sum / N_usable`` gives, after
+        DDP's average over ``W`` ranks, the gradient of the global mean."""
+        zero = torch.zeros((), dtype=out.per_demo.dtype, device=out.per_demo.device)
+        local = torch.where(out.usable, out.per_demo, zero).sum()
+        counts = torch.tensor(_counts(out), dtype=local.dtype, device=local.device)
+        total = _dist.all_reduce_sum(torch.cat([local.detach()[None], counts]))
+        n_use = total[1]
+        return out._replace(loss=total[0] / n_use), local * (self.w / n_use), [int(c) for c in total[1:]]
+
+    def gather(self, out: IOCLoss) -> IOCLoss:
+        """The per-demo fields of every rank, in demo order, with the demos' batch shape."""
+        def g(t: Tensor) -> Tensor:
+            return _dist.gather_along(t, self.n).reshape(*self.batch, *t.shape[1:])
+
+        st = out.status
+        status = SolverStatus(converged=g(st.converged), iterations=g(st.iterations), reason=g(st.reason))
+        return out._replace(per_demo=g(out.per_demo), x=g(out.x), u=g(out.u), status=status,
+                            usable=g(out.usable))
 
 
 def _optimize(evaluate: Any, params: list[Tensor], model: LQTCostModel, optimizer: str, steps: int, lr: float,
               tol: float, hist: dict[str, list[float]]) -> None:
     def closure() -> Tensor:
         opt.zero_grad()
-        out = evaluate()
-        out.loss.backward()
+        out, objective = evaluate()
+        objective.backward()
         return out.loss
 
     if optimizer == "lbfgs":
