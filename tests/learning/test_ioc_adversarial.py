@@ -62,10 +62,7 @@ def test_fitted_via_time_stays_in_horizon():
     LQTCostModel(torch.eye(4, dtype=D64), torch.eye(2, dtype=D64), T, via_points=res.model.via_points)
 
 
-def test_nonconverged_ilqr_demo_gradient_is_exact_or_excluded():
-    """Issue: a non-converged solve's gradient is either exact or excluded.  With max_iter=2 no demo
-    converges, all stay usable, and the implicit gradient at the last iterate is off by 10-30 %."""
-    from controllers.ilqr import ILQROptions
+def _pendulum_problem():
     from controllers.systems.pendulum import Pendulum
 
     pend, Tp = Pendulum(dt=0.05), 30
@@ -77,6 +74,15 @@ def test_nonconverged_ilqr_demo_gradient_is_exact_or_excluded():
     xd = x0[:, None, :] + s * (goal - x0)[:, None, :]
     model = LQTCostModel(SPDWeight(torch.tensor([10.0, 0.5], dtype=D64)), torch.tensor([[0.1]], dtype=D64),
                          Tp, target=goal, terminal_factor=10.0, learn_terminal=True)
+    return pend, model, xd
+
+
+def test_nonconverged_ilqr_demo_gradient_is_exact_or_excluded():
+    """Issue: a non-converged solve's gradient is either exact or excluded.  With max_iter=2 no demo
+    converges, all stay usable, and the implicit gradient at the last iterate is off by 10-30 %."""
+    from controllers.ilqr import ILQROptions
+
+    pend, model, xd = _pendulum_problem()
     opts = ILQROptions(max_iter=2)
     base = {k: p.detach().clone() for k, p in model.named_parameters()}
 
@@ -149,21 +155,6 @@ def test_normalize_scale_rejects_nan_scale():
     """R_00 = NaN passes the `R_00 <= 0` check and returns all-NaN weights silently."""
     with pytest.raises(ValueError, match="R"):
         normalize_scale(torch.tensor([[math.nan]], dtype=D64), torch.eye(2, dtype=D64))
-
-
-def _pendulum_problem():
-    from controllers.systems.pendulum import Pendulum
-
-    pend, Tp = Pendulum(dt=0.05), 30
-    g = torch.Generator().manual_seed(0)
-    x0 = torch.stack([torch.rand(3, generator=g, dtype=D64) * 2 - 1,
-                      torch.randn(3, generator=g, dtype=D64)], -1)
-    goal = torch.tensor([1.2, 0.0], dtype=D64)
-    s = torch.linspace(0, 1, Tp + 1, dtype=D64)[None, :, None]
-    xd = x0[:, None, :] + s * (goal - x0)[:, None, :]
-    model = LQTCostModel(SPDWeight(torch.tensor([10.0, 0.5], dtype=D64)), torch.tensor([[0.1]], dtype=D64),
-                         Tp, target=goal, terminal_factor=10.0, learn_terminal=True)
-    return pend, model, xd
 
 
 def test_unconverged_choice_is_explicit_and_reported():

@@ -25,18 +25,9 @@ from learning.primitives import (
     reproduction_error,
     via_point_error,
 )
+from tests.learning.demo_data import smooth_demos
 
 D64 = torch.float64
-
-
-def _demos(N=6, T=30, D=2, b=(), seed=0, dtype=D64):
-    """Smooth random demos ``(*b, N, T, D)``: a common curve plus per-demo low-frequency variations."""
-    g = torch.Generator().manual_seed(seed)
-    s = torch.linspace(0, 1, T, dtype=D64)
-    base = torch.stack([torch.sin(math.pi * s), s ** 2], -1)[:, :D]
-    c = torch.randn(*b, N, 3, D, generator=g, dtype=D64) * 0.1
-    var = sum(c[..., k:k + 1, :] * torch.sin((k + 1) * math.pi * s)[:, None] for k in range(3))
-    return (base + var).to(dtype)
 
 
 def _np_transfer(order, D, dt, T):
@@ -95,7 +86,7 @@ def _np_model(x, dt, K, order, reg):
 
 @pytest.mark.parametrize("order", [1, 2, 3])
 def test_fit_matches_dense_lstsq_and_covariance(order):
-    x = _demos(N=5, T=25)
+    x = smooth_demos(N=5, T=25)
     dt, K, reg = 0.04, 6, 1e-6
     pm = fit_promp(x, dt=dt, n_basis=K, order=order, reg=reg)
     Z, mu, C, S = _np_model(x.numpy(), dt, K, order, reg)
@@ -116,7 +107,7 @@ def test_integrator_chain_order2_is_double_integrator():
 
 
 def test_state_and_control_covariance_dense_and_monte_carlo():
-    x = _demos(N=6, T=20)
+    x = smooth_demos(N=6, T=20)
     pm = fit_promp(x, dt=0.05, n_basis=5)
     Z, mu, C, S = _np_model(x.numpy(), 0.05, 5, 2, 1e-8)
     np.testing.assert_allclose(pm.state_cov().numpy(), S @ C @ S.T, rtol=1e-6, atol=1e-9)
@@ -148,7 +139,7 @@ def _np_condition(mu_x, Sig_x, rows, y, R):
 
 @pytest.mark.parametrize("noise", [1e-3, 0.0])
 def test_condition_matches_dense_gaussian_conditioning(noise):
-    x = _demos(N=7, T=20)
+    x = smooth_demos(N=7, T=20)
     pm = fit_promp(x, dt=0.05, n_basis=6)
     t_idx = [5, 14]
     y = torch.tensor([[0.7, 0.1], [0.9, 0.5]], dtype=D64)
@@ -164,7 +155,7 @@ def test_condition_matches_dense_gaussian_conditioning(noise):
 
 
 def test_condition_passes_through_via_points_and_custom_observation():
-    x = _demos(N=6, T=30)
+    x = smooth_demos(N=6, T=30)
     pm = fit_promp(x, dt=0.04, n_basis=8)
     y = pm.state_mean()[[10, 22], :2] + torch.tensor([[0.05, -0.04], [-0.03, 0.06]], dtype=D64)
     c = pm.condition([10, 22], y, noise=1e-14)
@@ -188,7 +179,7 @@ def test_condition_passes_through_via_points_and_custom_observation():
 
 
 def test_batched_equals_per_sample_loop():
-    x = _demos(N=5, T=20, b=(3,))
+    x = smooth_demos(N=5, T=20, b=(3,))
     pm = fit_promp(x, dt=0.05, n_basis=5)
     assert pm.batch_shape == (3,)
     t_idx = torch.tensor([[4, 12], [6, 15], [3, 18]])
@@ -209,7 +200,7 @@ def test_batched_equals_per_sample_loop():
 
 
 def test_nan_element_does_not_poison_the_batch():
-    x = _demos(N=5, T=20, b=(2,)).clone()
+    x = smooth_demos(N=5, T=20, b=(2,)).clone()
     x[0, 2, 7, 1] = float("nan")
     pm = fit_promp(x, dt=0.05, n_basis=5)
     ref = fit_promp(x[1], dt=0.05, n_basis=5)
@@ -220,7 +211,7 @@ def test_nan_element_does_not_poison_the_batch():
 
 
 def test_float32_and_dtype_follow():
-    x = _demos(N=6, T=30)
+    x = smooth_demos(N=6, T=30)
     p64 = fit_promp(x, dt=0.04, n_basis=8)
     p32 = fit_promp(x.float(), dt=0.04, n_basis=8)
     assert p32.mean.dtype == p32.cov.dtype == p32.S.dtype == torch.float32
@@ -236,7 +227,7 @@ def test_float32_and_dtype_follow():
 
 
 def test_gradcheck_conditioning():
-    x0 = _demos(N=4, T=10)
+    x0 = smooth_demos(N=4, T=10)
     y0 = torch.tensor([[0.6, 0.3]], dtype=D64)
 
     def f(x, y):
@@ -313,7 +304,7 @@ def test_metrics_against_numpy():
 
 
 def test_bad_inputs_name_the_argument():
-    x = _demos(N=4, T=20)
+    x = smooth_demos(N=4, T=20)
     pm = fit_promp(x, dt=0.05, n_basis=4)
     with pytest.raises(ValueError, match="N >= 2"):
         fit_promp(x[:1], dt=0.05)

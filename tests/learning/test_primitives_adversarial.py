@@ -15,22 +15,13 @@ import pytest
 import torch
 
 from learning.primitives import fit_dmp, fit_promp, perturbation_recovery, via_point_error
+from tests.learning.demo_data import smooth_demos
 
 D64 = torch.float64
 
 
-def _demos(N=6, T=30, D=2, b=(), seed=0, dtype=D64):
-    """Smooth random demos ``(*b, N, T, D)``: a common curve plus per-demo low-frequency variations."""
-    g = torch.Generator().manual_seed(seed)
-    s = torch.linspace(0, 1, T, dtype=D64)
-    base = torch.stack([torch.sin(math.pi * s), s ** 2], -1)[:, :D]
-    c = torch.randn(*b, N, 3, D, generator=g, dtype=D64) * 0.1
-    var = sum(c[..., k:k + 1, :] * torch.sin((k + 1) * math.pi * s)[:, None] for k in range(3))
-    return (base + var).to(dtype)
-
-
 def _model():
-    pm = fit_promp(_demos(), dt=0.04, n_basis=8)
+    pm = fit_promp(smooth_demos(), dt=0.04, n_basis=8)
     y = pm.state_mean()[[15], :2] + 0.05
     return pm, y
 
@@ -92,7 +83,7 @@ def test_condition_rejects_a_negative_definite_noise_covariance():
 
 def test_sample_nan_element_does_not_poison_the_batch():
     # linalg.eigh of the NaN element's covariance raised for the whole batch
-    clean = _demos(N=5, T=20, b=(2,))
+    clean = smooth_demos(N=5, T=20, b=(2,))
     x = clean.clone()
     x[0, 2, 7, 1] = float("nan")
     s = fit_promp(x, dt=0.05, n_basis=5).sample(3, torch.Generator().manual_seed(0))
@@ -103,7 +94,7 @@ def test_sample_nan_element_does_not_poison_the_batch():
 
 def test_track_nan_element_does_not_poison_the_batch():
     # torch.linalg.cholesky of the NaN element's Σ_t raised for the whole batch
-    x = _demos(N=5, T=20, b=(2,)).clone()
+    x = smooth_demos(N=5, T=20, b=(2,)).clone()
     x[0, 2, 7, 1] = float("nan")
     pm = fit_promp(x, dt=0.05, n_basis=5)
     ref = fit_promp(x[1], dt=0.05, n_basis=5).track()
@@ -130,7 +121,7 @@ def test_track_floor_zero_on_exactly_conditioned_start():
 def test_track_gradient_wrt_demos_gradcheck():
     # Riccati's default implicit mode returns K, k without a graph; track rolls out with them, so the gradient
     # of track().x w.r.t. the demos silently dropped the feedback law's dependence (relative error 1.0)
-    x0 = _demos(N=3, T=6)
+    x0 = smooth_demos(N=3, T=6)
 
     def f(x):
         return fit_promp(x, dt=0.1, n_basis=2, reg=1e-3).track(control_weight=1e-2, floor=1e-2).x
@@ -139,7 +130,7 @@ def test_track_gradient_wrt_demos_gradcheck():
 
 
 def test_track_gradient_wrt_via_point_gradcheck():
-    x0 = _demos(N=4, T=8)
+    x0 = smooth_demos(N=4, T=8)
     pm = fit_promp(x0, dt=0.1, n_basis=3, reg=1e-3)
     y0 = pm.state_mean()[[5], :2] + 0.05
 
@@ -155,7 +146,7 @@ def test_track_gradient_wrt_via_point_gradcheck():
 @pytest.mark.parametrize("shape", [(2,), (1, 2), (4, 1, 2)])
 def test_dmp_reproduce_position_start_broadcasts(shape):
     # x0 given as positions (..., D) broadcasting with the N DMPs raised a RuntimeError from expand
-    x = _demos(N=3, T=30)
+    x = smooth_demos(N=3, T=30)
     dm = fit_dmp(x, dt=0.05, n_basis=10)
     p0 = torch.linspace(0.1, 0.4, math.prod(shape), dtype=D64).reshape(shape)
     r = dm.reproduce(x0=p0)
@@ -175,7 +166,7 @@ def test_via_point_error_accepts_numpy_steps():
 
 def test_push_step_accepts_numpy_integer():
     # perturbation_recovery accepts np.int64 for 'at'; DMP.reproduce and ProMP.track refused it
-    x = _demos(N=3, T=30)
+    x = smooth_demos(N=3, T=30)
     push = torch.tensor([0.1, -0.1], dtype=D64)
     dm = fit_dmp(x, dt=0.05, n_basis=10)
     torch.testing.assert_close(dm.reproduce(perturbation=push, at=np.int64(5)).x,
