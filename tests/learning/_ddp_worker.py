@@ -13,8 +13,10 @@ torchrun it runs in one process (the reference the test compares with, via :func
 from __future__ import annotations
 
 import argparse
+import json
 import math
 
+import numpy as np
 import torch
 
 from controllers.dynamics import LinearDynamics
@@ -22,7 +24,7 @@ from controllers.lqt_cookbook import double_integrator
 from controllers.problem import LQProblem
 from controllers.riccati import solve
 from learning import distributed as dist_helpers
-from learning.evaluate import evaluate
+from learning.evaluate import evaluate, jsonable
 from learning.ioc import LQTCostModel, SPDWeight, fit_cost
 
 D64 = torch.float64
@@ -81,6 +83,14 @@ def _rank_spread(flat: torch.Tensor) -> float:
     return max(float((p - parts[0]).abs().max()) for p in parts)
 
 
+def saveable(out: dict) -> dict:
+    """``out`` with only tensors and plain values (``torch.load(..., weights_only=True)`` reads it): the
+    evaluation's arrays as tensors, its ``meta`` as a JSON string."""
+    ev = {k: torch.from_numpy(v) if isinstance(v, np.ndarray) else v for k, v in out["eval"].items()}
+    ev["meta"] = json.dumps(jsonable(ev["meta"]))
+    return {**out, "eval": ev}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--out", required=True)
@@ -98,7 +108,7 @@ def main() -> None:
             out["backend"] = torch.distributed.get_backend() if dist_helpers.is_distributed() else None
             for k in ("lbfgs", "adam"):
                 out[k]["flat"] = out[k]["flat"].cpu()
-            torch.save(out, a.out)
+            torch.save(saveable(out), a.out)
     finally:
         dist_helpers.shutdown()
 
