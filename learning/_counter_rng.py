@@ -45,8 +45,13 @@ def uniforms(key: torch.Tensor, episode: torch.Tensor, k: int, dtype: torch.dtyp
     1.0 only if ``dtype`` cannot represent the 53-bit number; callers map [0, 1] affinely).
     """
     base = mix64(key ^ mix64(episode))
-    j = torch.arange(1, k + 1, dtype=torch.int64, device=key.device)
-    z = mix64(base.unsqueeze(-1) + j * _GOLDEN)
+    # j·golden (mod 2⁶⁴) for j = 1..k as a table of constants: written as ``arange * golden`` (or as a
+    # cumulative sum, which inductor rewrites into it), inductor folds it into its int32 index arithmetic
+    # and Triton refuses the 64-bit constant there (measured on an H200, torch 2.11: "Scalar
+    # -7046029254386353131 is out of range for type int32")
+    steps = torch.tensor([_signed(j * (_GOLDEN % (1 << 64)) % (1 << 64)) for j in range(1, k + 1)],
+                         dtype=torch.int64, device=key.device)
+    z = mix64(base.unsqueeze(-1) + steps)
     return (_srl(z, 11).to(torch.float64) * 2.0 ** -53).to(dtype)
 
 

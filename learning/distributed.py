@@ -177,14 +177,14 @@ def wrap_ddp(module: nn.Module) -> nn.Module:
     backward **averages** the gradients over the ranks (a loss whose global value is the sum of the ranks'
     values must therefore be multiplied by the world size before ``backward``, as
     :func:`learning.ioc.fit_cost` does).  Buffers are not re-broadcast at every forward (the cost models
-    never change theirs).  CUDA modules are placed with ``device_ids=[their device]``; CPU ones without.
+    never change theirs).  No ``device_ids`` (CPU or CUDA): DDP then leaves the forward's inputs where they
+    are — with ``device_ids`` it moves them and fails on a forward without arguments, as the cost models'
+    (measured on an H200, torch 2.11: ``IndexError`` in ``_pre_forward``).
     """
     if world_size() == 1:
         return module
-    devs = {p.device for p in module.parameters()}
-    ids = [next(iter(devs)).index] if len(devs) == 1 and next(iter(devs)).type == "cuda" else None
     ddp = nn.parallel.DistributedDataParallel
     # torch >= 2.13 spells "no buffer broadcast at forward" forward_sync_buffers (broadcast_buffers warns)
     key = "forward_sync_buffers" if "forward_sync_buffers" in inspect.signature(ddp).parameters else \
         "broadcast_buffers"
-    return ddp(module, device_ids=ids, **{key: False})
+    return ddp(module, **{key: False})
