@@ -77,13 +77,17 @@ acceleration (semi-implicit Euler, :mod:`controllers.systems._mechanical`).
   ``du/d log θ`` at the data shows (:func:`control_jacobian`).
 
 **Unconverged solves are never silently dropped.**  Every loss evaluation records each training sample's
-solver status (:class:`~controllers.problem.SolverStatus`).  ``unconverged="include"`` (default) keeps a
-non-converged sample in the loss with the implicit gradient at its last iterate (exact for the problem
-linearized there, :func:`controllers.ilqr.ilqr`); ``"exclude"`` removes it from that evaluation's mean.
-Either way the history lists, per evaluation, which samples did not converge and why, and how many were
-excluded.  A sample whose solve returned non-finite controls (a failed input, a diverged rollout) cannot be
-included: under both policies it counts as the worst possible error ``(2 u_limit)²`` without a gradient
-(:func:`imitation_loss`) and is counted in ``n_nonfinite``.
+solver status (:class:`~controllers.problem.SolverStatus`).  ``unconverged="exclude"`` (default, as
+:mod:`learning.ioc`) removes a non-converged sample from that evaluation's mean, so that every gradient is
+the exact one of an optimal plan; ``"include"`` keeps it with the implicit gradient at its last iterate
+(exact only for the problem linearized there, :func:`controllers.ilqr.ilqr`).  Either way the history lists,
+per evaluation, which samples did not converge and why, and how many were excluded.  A sample whose solve
+returned non-finite controls (a failed input, a diverged rollout) or whose demo is non-finite cannot be
+included: under both policies it counts as the worst possible error ``(2 u_limit)²`` with a zero gradient
+(:func:`imitation_loss`) and is counted in ``n_nonfinite``; an evaluation with no usable sample at all has
+that loss too (never 0, which would read as a perfect fit).  The record of :func:`learn_dynamics` is strict
+JSON: a non-finite value (e.g. parameters overflowed by a too large step) is written as ``null`` and its
+path listed in ``"nonfinite_values"``.
 
 **Baselines** (in each record of :func:`learn_dynamics`): system identification — the same parameters
 fitted by Levenberg-Marquardt to the demos' state transitions ``(x_t, u_t) → x_{t+1}`` (least squares on
@@ -106,6 +110,7 @@ pendulum, N² for the cart-pole; ``u_limit`` is in the record to normalize).
 
 from __future__ import annotations
 
+import inspect
 import math
 import time
 from collections.abc import Mapping, Sequence
@@ -190,10 +195,7 @@ class ImitationSetup:
 
     def model(self, params: Mapping[str, Tensor | float], damping: float = 0.0) -> Pendulum | CartPole:
         """The model with the given physical parameters (floats or tensors, e.g. requiring grad)."""
-        missing = [k for k in self.param_names if k not in params]
-        if missing:
-            raise ValueError(f"ImitationSetup.model: 'params' lacks {missing} (needs "
-                             f"{list(self.param_names)})")
+        _check_names(self.param_names, params, "ImitationSetup.model", extra=False)
         kw = {k: params[k] for k in self.param_names}
         if self.system == "pendulum":
             return Pendulum(damping=damping, dt=self.dt, **kw)
@@ -212,7 +214,9 @@ class ImitationSetup:
         ``U(−0.5, 0.5)``."""
         if not isinstance(generator, torch.Generator):
             raise TypeError("ImitationSetup.sample_starts: 'generator' must be a torch.Generator")
-        w = 2 * torch.rand(int(count), self.n, generator=generator, dtype=torch.float64) - 1
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise ValueError(f"ImitationSetup.sample_starts: 'count' must be an int >= 0, got {count!r}")
+        w = 2 * torch.rand(count, self.n, generator=generator, dtype=torch.float64) - 1
         if self.system == "pendulum":
             x = torch.stack([math.pi + w[:, 0], w[:, 1]], -1)
         else:
@@ -238,6 +242,10 @@ def imitation_setup(system: str, *, expert_damping: float = 0.0, dtype: torch.dt
         raise ValueError(f"{own}: 'expert_damping' is for the pendulum (the cart-pole model has no damping)")
     if isinstance(horizon, bool) or not isinstance(horizon, int) or horizon < 1:
         raise ValueError(f"{own}: 'horizon' must be a positive int, got {horizon!r}")
+    try:
+        device = None if device is None else torch.device(device)
+    except (RuntimeError, TypeError) as e:
+        raise ValueError(f"{own}: 'device' must be a torch.device or its name, got {device!r}") from e
     s = _SPEC[system]
     u_limit = s["u_limit"] if u_limit is None else _positive_float(u_limit, "u_limit", own)
     kw = dict(dtype=dtype, device=device)
@@ -252,13 +260,101 @@ def imitation_setup(system: str, *, expert_damping: float = 0.0, dtype: torch.dt
 def identifiable_combinations(system: str, params: Mapping[str, Any]) -> dict[str, Any]:
     """The identifiable combinations of the physical parameters (module docstring): pendulum
     ``{"g/l": g / l, "1/(m l^2)": 1 / (m l²)}``; cart-pole: the four physical parameters themselves.
-    Values are floats or tensors, as given."""
+    Values are floats (finite, > 0) or tensors (not read), as given; names other than the system's are
+    ignored (e.g. a record's ``"damping"``)."""
+    own = "identifiable_combinations"
+    if system not in SYSTEMS:
+        raise ValueError(f"{own}: 'system' must be one of {SYSTEMS}, got {system!r}")
+    names = _SPEC[system]["names"]
+    _check_names(names, params, own, extra=True)
+    for k in names:
+        _check_value(params[k], k, own)
+    return _combinations(system, params)
+
+
+def _combinations(system: str, params: Mapping[str, Any]) -> dict[str, Any]:
+    """:func:`identifiable_combinations` unchecked (a float 0 gives ``inf``, not an error)."""
     if system == "pendulum":
         g, m, l_ = params["gravity"], params["mass"], params["length"]
-        return {"g/l": g / l_, "1/(m l^2)": 1.0 / (m * l_ * l_)}
-    if system == "cartpole":
-        return {k: params[k] for k in _SPEC["cartpole"]["names"]}
-    raise ValueError(f"identifiable_combinations: 'system' must be one of {SYSTEMS}, got {system!r}")
+        return {"g/l": _div(g, l_), "1/(m l^2)": _div(1.0, m * l_ * l_)}
+    return {k: params[k] for k in _SPEC["cartpole"]["names"]}
+
+
+def _div(a: Any, b: Any) -> Any:
+    if isinstance(b, Tensor) or isinstance(a, Tensor) or b != 0:
+        return a / b
+    return math.nan if a == 0 or math.isnan(a) else math.copysign(math.inf, a)
+
+
+def _check_names(names: Sequence[str], params: Any, own: str, *, extra: bool) -> None:
+    """``params`` a mapping with every name of ``names`` (and no other unless ``extra``)."""
+    if not isinstance(params, Mapping):
+        raise TypeError(f"{own}: 'params' must be a mapping {{name: value}} of {list(names)}, got "
+                        f"{type(params).__name__}")
+    missing = [k for k in names if k not in params]
+    unknown = [] if extra else [k for k in params if k not in names]
+    if missing or unknown:
+        what = " and ".join(([f"lacks {missing}"] if missing else []) +
+                            ([f"has unknown names {unknown}"] if unknown else []))
+        raise ValueError(f"{own}: 'params' {what} (needs {'' if extra else 'exactly '}{list(names)})")
+
+
+def _check_value(v: Any, k: str, own: str, dtype: torch.dtype | None = None,
+                 batch: int | None = None) -> None:
+    """A parameter value: a finite float > 0, or a tensor (of ``dtype``, shape ``()``, ``(1,)`` or
+    ``(batch,)``; its values are not read: autograd passes through them)."""
+    if isinstance(v, Tensor):
+        if dtype is not None and v.dtype != dtype:
+            raise TypeError(f"{own}: params[{k!r}] has dtype {v.dtype}; the setup's is {dtype} "
+                            f"(no silent cast)")
+        if v.dim() > 1 or v.numel() not in (1, batch or 1):
+            raise ValueError(f"{own}: params[{k!r}] must be a scalar tensor or of shape ({batch or 1},), got "
+                             f"{tuple(v.shape)}")
+    elif isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise TypeError(f"{own}: params[{k!r}] must be a float or a tensor, got {type(v).__name__}")
+    elif not math.isfinite(v) or v <= 0:
+        raise ValueError(f"{own}: params[{k!r}] must be a finite float > 0, got {v!r}")
+
+
+def _check_params(setup: Any, params: Any, own: str, batch: int | None = None) -> None:
+    """``params``: exactly ``setup.param_names``, each value as :func:`_check_value`."""
+    _check_names(setup.param_names, params, own, extra=False)
+    for k in setup.param_names:
+        _check_value(params[k], k, own, setup.dtype, batch)
+
+
+def _check_setup(setup: Any, own: str) -> None:
+    if not isinstance(setup, ImitationSetup):
+        raise TypeError(f"{own}: 'setup' must be an ImitationSetup (imitation_setup()), got "
+                        f"{type(setup).__name__}")
+
+
+def _check_setup_x0(setup: Any, x0: Any, options: Any, own: str) -> int:
+    """``setup`` an :class:`ImitationSetup`, ``x0`` a ``(N, n)`` tensor of its dtype, ``N ≥ 1``; returns N."""
+    _check_setup(setup, own)
+    if options is not None and not isinstance(options, ILQROptions):
+        raise TypeError(f"{own}: 'options' must be an ILQROptions or None, got {type(options).__name__}")
+    _check_states(x0, "x0", setup, own)
+    return x0.shape[0]
+
+
+def _check_states(x: Any, name: str, setup: ImitationSetup, own: str) -> None:
+    if not isinstance(x, Tensor) or not x.is_floating_point():
+        raise TypeError(f"{own}: '{name}' must be a floating tensor (N, {setup.n}) of dtype {setup.dtype}, "
+                        f"got {x.dtype if isinstance(x, Tensor) else type(x).__name__}")
+    if x.dtype != setup.dtype:
+        raise TypeError(f"{own}: '{name}' has dtype {x.dtype} but the setup's is {setup.dtype} (make the "
+                        f"setup with imitation_setup(dtype=...); no silent cast)")
+    if x.dim() != 2 or x.shape[-1] != setup.n or x.shape[0] < 1:
+        raise ValueError(f"{own}: '{name}' must be a tensor (N, {setup.n}) with N >= 1, got {tuple(x.shape)}")
+
+
+def _check_controls(u: Any, name: str, shape: tuple[int, ...], dtype: torch.dtype, own: str) -> None:
+    if not isinstance(u, Tensor) or u.dtype != dtype:
+        got = u.dtype if isinstance(u, Tensor) else type(u).__name__
+        raise TypeError(f"{own}: '{name}' must be a tensor of dtype {dtype} (the states'), got {got}")
+    if tuple(u.shape) != shape:
+        raise ValueError(f"{own}: '{name}' must be a tensor {shape}, got {tuple(u.shape)}")
 
 
 # --------------------------------------------------------------------------------------------------
@@ -272,8 +368,9 @@ class ImitationLoss:
 
     Attributes:
         loss: 0-d, the mean over included samples of ``mean_{t,j} (u − u*)²`` (differentiable).
-        per_sample: ``(N,)`` each sample's MSE (NaN where the solve returned non-finite controls).
-        included: ``(N,)`` bool, the samples in ``loss``.
+        per_sample: ``(N,)`` each sample's MSE (NaN where the plan or the demo is non-finite).
+        included: ``(N,)`` bool, the samples in ``loss`` with their own error (not: non-finite samples,
+            counted as the largest error, and with ``unconverged="exclude"`` non-converged ones).
         solution: the learner's :class:`~controllers.ilqr.ILQRSolution` (per-sample ``status``).
     """
 
@@ -285,51 +382,94 @@ class ImitationLoss:
 
 def imitation_loss(setup: ImitationSetup, params: Mapping[str, Tensor | float], x0: Tensor,
                    u_expert: Tensor, *, u_init: Tensor | None = None, grad: str = "implicit",
-                   unconverged: str = "include", options: ILQROptions | None = None) -> ImitationLoss:
+                   unconverged: str = "exclude", options: ILQROptions | None = None) -> ImitationLoss:
     """``L(θ)`` on start states ``x0 (N, n)`` against the expert's ``u_expert (N, T, m)``.
 
     The learner model (damping 0) with ``params`` plans by :func:`controllers.ilqr.ilqr` (``grad`` its
     :class:`~controllers.problem.GradMode`), warm-started from ``u_init`` (zeros when ``None``).
-    ``unconverged``: ``"include"`` keeps non-converged samples (implicit gradient at their last iterate),
-    ``"exclude"`` drops them from the mean.  A sample whose plan is non-finite (a failed input, a diverged
-    rollout) is never in ``included``: it counts in the mean as the largest error a plan within the limits
-    can have, ``(2 u_limit)²`` per control, without a gradient — so that a step into parameters where the
-    solver diverges is never read as a perfect fit (measured: before this rule, a cart-pole fit whose 50
-    solves all diverged saw loss 0 and stopped there).  No sample at all: ``loss`` is 0."""
+    ``params``: exactly ``setup.param_names``; floats finite and > 0, or tensors of the setup's dtype,
+    shared (shape ``()``) or per sample (``(N,)``).  ``unconverged``: ``"exclude"`` (default, as
+    :func:`learning.ioc.ioc_loss`) drops non-converged samples from the mean (every gradient is then exact),
+    ``"include"`` keeps them (implicit gradient at their last iterate, inexact).  A sample whose plan or demo
+    is non-finite (a failed input, a diverged rollout) is never in ``included``: it counts in the mean as the
+    largest error a plan within the limits can have, ``(2 u_limit)²`` per control, with a zero gradient (its
+    NaNs never reach the others' gradient) — so that a step into parameters where the solver diverges is
+    never read as a perfect fit (measured: before this rule, a cart-pole fit whose 50 solves all diverged
+    saw loss 0 and stopped there).  When no sample is usable at all (every one excluded), ``loss`` is that
+    largest error too."""
     own = "imitation_loss"
     if unconverged not in _UNCONVERGED:
         raise ValueError(f"{own}: 'unconverged' must be one of {_UNCONVERGED}, got {unconverged!r}")
-    if not isinstance(x0, Tensor) or x0.dim() != 2 or x0.shape[-1] != setup.n:
-        raise ValueError(f"{own}: 'x0' must be a tensor (N, {setup.n}), got "
-                         f"{tuple(x0.shape) if isinstance(x0, Tensor) else type(x0).__name__}")
-    shape = (x0.shape[0], setup.horizon, 1)
-    if not isinstance(u_expert, Tensor) or tuple(u_expert.shape) != shape:
-        got = tuple(u_expert.shape) if isinstance(u_expert, Tensor) else type(u_expert).__name__
-        raise ValueError(f"{own}: 'u_expert' must be a tensor {shape}, got {got}")
-    sol = ilqr(setup.problem(setup.model(params), x0), u_init, grad=grad, options=options)
-    per = ((sol.u - u_expert) ** 2).mean((-2, -1))
-    finite = torch.isfinite(per)
+    N = _check_setup_x0(setup, x0, options, own)
+    _check_controls(u_expert, "u_expert", (N, setup.horizon, 1), x0.dtype, own)
+    _check_params(setup, params, own, batch=N)
+    gate: dict[str, Tensor] = {}
+    sol = ilqr(setup.problem(setup.model(_gated(setup, params, N, gate)), x0), u_init, grad=grad,
+               options=options)
+    per, finite = _per_sample_error(sol.u, u_expert)
     inc = finite if unconverged == "include" else finite & sol.status.converged
-    zero = torch.zeros((), dtype=per.dtype, device=per.device)
-    worst = (2.0 * setup.u_limit) ** 2 * (~finite).sum().to(per.dtype)  # a diverged plan: the largest error
-    count = (inc.sum() + (~finite).sum()).clamp(min=1).to(per.dtype)
-    loss = (torch.where(inc, per, zero).sum() + worst) / count
-    return ImitationLoss(loss=loss, per_sample=per.detach(), included=inc, solution=sol)
+    gate["keep"] = inc
+    worst = (2.0 * setup.u_limit) ** 2
+    n_bad = (~finite).sum().to(per.dtype)
+    count = inc.sum().to(per.dtype) + n_bad
+    total = torch.where(inc, per, torch.zeros((), dtype=per.dtype, device=per.device)).sum() + worst * n_bad
+    loss = torch.where(count > 0, total / count.clamp(min=1), worst)
+    per = torch.where(finite, per, math.nan).detach()
+    return ImitationLoss(loss=loss, per_sample=per, included=inc, solution=sol)
+
+
+def _gated(setup: ImitationSetup, params: Mapping[str, Tensor | float], N: int, gate: dict[str, Tensor]
+           ) -> dict[str, Tensor | float]:
+    """``params`` with each one that requires grad expanded to ``(N,)`` and its gradient zeroed, by a hook,
+    for the samples not in ``gate["keep"]`` (filled after the solve): the implicit backward of a diverged
+    sample can be NaN even for a zero cotangent, and a shared parameter would sum that NaN into every
+    gradient."""
+    out: dict[str, Tensor | float] = {}
+    for k in setup.param_names:
+        v = params[k]
+        if isinstance(v, Tensor) and v.requires_grad and torch.is_grad_enabled():
+            v = v.expand(N)
+            v.register_hook(lambda g: torch.where(gate["keep"], g, torch.zeros((), dtype=g.dtype,
+                                                                                 device=g.device)))
+        out[k] = v
+    return out
+
+
+def _per_sample_error(u: Tensor, u_expert: Tensor) -> tuple[Tensor, Tensor]:
+    """``mean_{t,j} (u − u*)²`` per sample ``(N,)`` and whether it is finite; the difference is masked
+    before squaring, so that a non-finite sample's gradient is exactly 0 (``0 · NaN`` would be NaN)."""
+    ok = torch.isfinite(u).flatten(1).all(-1) & torch.isfinite(u_expert).flatten(1).all(-1)
+    d = torch.where(ok[:, None, None], u - u_expert, torch.zeros((), dtype=u.dtype, device=u.device))
+    per = d.square().mean((-2, -1))
+    return per, ok & torch.isfinite(per)
 
 
 def control_jacobian(setup: ImitationSetup, params: Mapping[str, float], x0: Tensor,
-                     u_init: Tensor | None = None, options: ILQROptions | None = None) -> Tensor:
-    """``du*/d log θ`` ``(N·T·m, p)`` of the learner's plans at ``params`` (implicit gradients, one backward
-    pass per parameter); its rank says which parameter directions the controls can identify."""
-    z = torch.tensor([float(params[k]) for k in setup.param_names], dtype=setup.dtype,
-                     device=setup.device).log().requires_grad_()
+                     u_init: Tensor | None = None, options: ILQROptions | None = None, *,
+                     unconverged: str = "exclude") -> Tensor:
+    """``du*/d log θ`` ``(N·T·m, p)`` of the learner's plans from ``x0 (N, n)`` at ``params`` (floats or
+    scalar tensors; implicit gradients, one backward pass per control); its rank says which parameter
+    directions the controls can identify.  The rows of a sample whose plan is non-finite, and with
+    ``unconverged="exclude"`` (default) of a sample whose solve did not converge (its implicit gradient is
+    not exact), are NaN — never a silent zero; ``"include"`` keeps the latter's rows."""
+    own = "control_jacobian"
+    if unconverged not in _UNCONVERGED:
+        raise ValueError(f"{own}: 'unconverged' must be one of {_UNCONVERGED}, got {unconverged!r}")
+    N = _check_setup_x0(setup, x0, options, own)
+    _check_params(setup, params, own)
+    z = torch.stack([torch.as_tensor(params[k], dtype=setup.dtype, device=setup.device).reshape(())
+                     for k in setup.param_names]).detach().log().requires_grad_()
     with torch.enable_grad():
         sol = ilqr(setup.problem(setup.model(dict(zip(setup.param_names, z.exp()))), x0), u_init,
                    grad="implicit", options=options)
         u = sol.u.reshape(-1)
         eye = torch.eye(u.numel(), dtype=u.dtype, device=u.device)
         rows = [torch.autograd.grad(u, z, e, retain_graph=True)[0] for e in eye]
-    return torch.stack(rows)
+    bad = ~torch.isfinite(sol.u).flatten(1).all(-1)
+    if unconverged == "exclude":
+        bad = bad | ~sol.status.converged
+    J = torch.stack(rows).reshape(N, -1, z.numel())
+    return torch.where(bad[:, None, None], math.nan, J).reshape(-1, z.numel())
 
 
 # --------------------------------------------------------------------------------------------------
@@ -340,18 +480,21 @@ def control_jacobian(setup: ImitationSetup, params: Mapping[str, float], x0: Ten
 def _rel_err(system: str, params: Mapping[str, float], truth: Mapping[str, float]) -> dict[str, float]:
     out = {k: abs(float(params[k]) - truth[k]) / abs(truth[k]) for k in truth}
     if system == "pendulum":
-        c, ct = identifiable_combinations(system, params), identifiable_combinations(system, truth)
+        c, ct = _combinations(system, params), _combinations(system, truth)
         out.update({k: abs(float(c[k]) - ct[k]) / abs(ct[k]) for k in ct})
     return out
 
 
 def _identifiable_names(system: str) -> list[str]:
-    return list(identifiable_combinations(system, dict.fromkeys(_SPEC[system]["names"], 1.0)))
+    return list(_combinations(system, dict.fromkeys(_SPEC[system]["names"], 1.0)))
 
 
 def _heldout_mse(setup: ImitationSetup, params: Mapping[str, float], x0: Tensor, u_expert: Tensor
                  ) -> tuple[float, int]:
-    """Held-out MSE of the MPC with ``params`` (solved from zeros) and its number of unconverged solves."""
+    """Held-out MSE of the MPC with ``params`` (solved from zeros) and its number of unconverged solves;
+    parameters that are not finite and positive (an overflowed fit) are not solved: NaN, all unconverged."""
+    if not all(math.isfinite(float(v)) and float(v) > 0 for v in params.values()):
+        return math.nan, int(x0.shape[0])
     with torch.no_grad():
         sol = ilqr(setup.problem(setup.model({k: float(v) for k, v in params.items()}), x0), grad="none",
                    options=EXPERT_OPTIONS)
@@ -410,7 +553,8 @@ def _levenberg_marquardt(evaluate, z0: Tensor, steps: int, tol: float, on_eval=N
     (called only for accepted points).  Step ``(JᵀJ + λ D) d = −Jᵀ r`` with ``D = diag(JᵀJ)`` (Marquardt's
     scaling, floored) and ``‖d‖∞`` capped at ``max_step`` (a trust region in ``log θ``: from a far start an
     uncapped step can jump to a spurious minimum, e.g. a cart-pole without pole mass), ``λ`` divided by 3 on a
-    decrease, multiplied by 4 otherwise.  Stops after ``steps`` evaluations, on an accepted step with
+    decrease, multiplied by 4 otherwise.  Stops on a zero gradient ``Jᵀ r`` (e.g. no usable sample) or a
+    non-finite step, after ``steps`` evaluations, on an accepted step with
     ``‖d‖∞ ≤ tol`` or a relative decrease below ``ftol`` (a spurious minimum on a boundary such as
     ``m_p → 0`` is approached by ever smaller decreases), a loss of 0, or ``max_rejected`` rejected steps in a
     row (``λ`` grown 4⁶-fold without a decrease: the round-off floor of the solves).
@@ -425,6 +569,8 @@ def _levenberg_marquardt(evaluate, z0: Tensor, steps: int, tol: float, on_eval=N
         A, g = J.mT @ J, J.mT @ r
         D = A.diagonal().clamp(min=1e-12 * float(A.diagonal().max().clamp(min=1e-300)))
         d = torch.linalg.solve(A + lam * torch.diag(D), -g)
+        if not bool(torch.isfinite(d).all()) or not bool((g != 0).any()):
+            break  # no information (e.g. every sample excluded: J = 0) or a failed solve: never a NaN step
         d = d * (max_step / d.abs().max().clamp(min=max_step))  # at most a factor e^max_step per parameter
         zn = z + d
         loss_prev = loss
@@ -461,8 +607,7 @@ def system_identification(setup: ImitationSetup, demos: Demonstrations, *, steps
     ``(x_t, u_t) → x_{t+1}`` by Levenberg-Marquardt on ``mean_t Σ_j (f_θ(x_t, u_t) − x_{t+1})_j² / σ_j²``
     (``σ_j²``: the variance of coordinate ``j`` of the next states; the Jacobian by forward-mode autograd
     through the model's step); returns ``{name: value}``."""
-    if not isinstance(demos, Demonstrations) or demos.u is None:
-        raise TypeError("system_identification: 'demos' must be Demonstrations with controls")
+    _check_sysid_args(setup, demos, steps, tol)
     x, u = demos.x[:, :-1], demos.u
     x1 = demos.x[:, 1:]
     w = x1.var((0, 1)).clamp(min=1e-12).rsqrt() / math.sqrt(x1.numel() / x1.shape[-1])  # per-coordinate scale
@@ -481,6 +626,21 @@ def system_identification(setup: ImitationSetup, demos: Demonstrations, *, steps
     with torch.enable_grad():
         z = _levenberg_marquardt(evaluate, z0, steps, tol)
     return dict(zip(setup.param_names, z.exp().tolist()))
+
+
+def _check_sysid_args(setup: Any, demos: Any, steps: Any, tol: Any) -> None:
+    own = "system_identification"
+    _check_setup(setup, own)
+    if not isinstance(demos, Demonstrations) or demos.u is None:
+        raise TypeError(f"{own}: 'demos' must be Demonstrations with controls")
+    if demos.n != setup.n or demos.m != 1:
+        raise ValueError(f"{own}: 'demos' have states of dimension {demos.n} and controls of {demos.m}; the "
+                         f"{setup.system} setup needs {setup.n} and 1")
+    if demos.dtype != setup.dtype:
+        raise TypeError(f"{own}: 'demos' have dtype {demos.dtype} but the setup's is {setup.dtype} "
+                        f"(no silent cast)")
+    _positive_int(steps, "steps", own)
+    _positive_float(tol, "tol", own)
 
 
 class _LSTMPlanner(nn.Module):
@@ -507,9 +667,10 @@ def behaviour_cloning(setup: ImitationSetup, x0: Tensor, u_expert: Tensor, x0_te
                       seed: int = 0) -> dict[str, float]:
     """Behaviour cloning ``x_0 → u_{0:T-1}`` (``u_limit · tanh``): an MLP (:class:`learning.bc.MLPPolicy`,
     two hidden layers) or an LSTM, full-batch Adam on the training starts; deterministic given ``seed``.
-    Returns ``{"imitation_mse": held-out MSE, "train_mse": ..., "time_s": ...}``."""
-    if kind not in ("mlp", "lstm"):
-        raise ValueError(f"behaviour_cloning: 'kind' must be 'mlp' or 'lstm', got {kind!r}")
+    Returns ``{"imitation_mse": held-out MSE, "train_mse": ..., "time_s": ...}``.  Shapes: ``x0 (N, n)``,
+    ``u_expert (N, T, 1)``, ``x0_test (M, n)``, ``u_test (M, T, 1)``, all of the setup's dtype and finite
+    (a non-finite demo is refused, naming its index: it would poison every weight)."""
+    _check_bc_args(setup, x0, u_expert, x0_test, u_test, kind, epochs, lr, hidden, seed)
     t0 = time.perf_counter()
     N, T, m = u_expert.shape
     mean, std = x0.mean(0), x0.std(0, unbiased=False).clamp(min=1e-3)
@@ -526,7 +687,7 @@ def behaviour_cloning(setup: ImitationSetup, x0: Tensor, u_expert: Tensor, x0_te
     opt = torch.optim.Adam(net.parameters(), lr=lr)
     scale = setup.u_limit ** 2
     with torch.enable_grad():
-        for _ in range(int(epochs)):
+        for _ in range(epochs):
             loss = ((predict(x0) - u_expert) ** 2).mean() / scale
             opt.zero_grad(set_to_none=True)
             loss.backward()
@@ -542,9 +703,31 @@ def behaviour_cloning(setup: ImitationSetup, x0: Tensor, u_expert: Tensor, x0_te
 # --------------------------------------------------------------------------------------------------
 
 
+def _check_bc_args(setup, x0, u_expert, x0_test, u_test, kind, epochs, lr, hidden, seed) -> None:
+    """:func:`behaviour_cloning`'s arguments checked (each error names its argument)."""
+    own = "behaviour_cloning"
+    if kind not in ("mlp", "lstm"):
+        raise ValueError(f"{own}: 'kind' must be 'mlp' or 'lstm', got {kind!r}")
+    _check_setup_x0(setup, x0, None, own)
+    _check_states(x0_test, "x0_test", setup, own)
+    T = u_expert.shape[1] if isinstance(u_expert, Tensor) and u_expert.dim() == 3 else setup.horizon
+    _check_controls(u_expert, "u_expert", (x0.shape[0], T, 1), setup.dtype, own)
+    _check_controls(u_test, "u_test", (x0_test.shape[0], T, 1), setup.dtype, own)
+    for name, v in (("x0", x0), ("u_expert", u_expert), ("x0_test", x0_test), ("u_test", u_test)):
+        bad = torch.nonzero(~torch.isfinite(v).flatten(1).all(-1)).flatten()
+        if bad.numel():
+            raise ValueError(f"{own}: '{name}' has a non-finite value in demo {int(bad[0])}")
+    _positive_int(epochs, "epochs", own)
+    _positive_float(lr, "lr", own)
+    if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 2:
+        raise ValueError(f"{own}: 'hidden' must be an int >= 2, got {hidden!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"{own}: 'seed' must be an int >= 0, got {seed!r}")
+
+
 def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int = 100,
                    lr: float | None = None, optimizer: str = "lbfgs+gauss_newton", tol: float = 1e-10,
-                   n_test: int = 50, unconverged: str = "include", warm_start: str = "expert",
+                   n_test: int = 50, unconverged: str = "exclude", warm_start: str = "expert",
                    expert_damping: float = 0.0, max_step: float = 0.5, u_limit: float | None = None,
                    warmup: int = 30,
                    baselines: Sequence[str] = _BASELINES, bc_epochs: int = 1000,
@@ -568,7 +751,8 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
             ``|∇L̃|∞ ≤ tol`` (``L̃ = L / u_limit²``) or a step changes ``L̃`` or ``log θ`` by less than
             ``tol / 1000``.
         n_test: held-out start states for the imitation MSE.
-        unconverged: ``"include"`` or ``"exclude"`` non-converged training solves (module docstring).
+        unconverged: ``"exclude"`` (default, as :mod:`learning.ioc`) or ``"include"`` non-converged
+            training solves (module docstring).
         warm_start: ``"expert"`` (each solve starts from the expert's controls) or ``"previous"`` (from the
             previous evaluation's controls; zeros first).
         expert_damping: the expert pendulum's damping (non-realizable when > 0; the learner's is 0).
@@ -591,14 +775,10 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
         ``loss``, ``accepted``, ``identifiable_rel_err_max``, ``params`` per name, ``n_unconverged``,
         ``n_excluded``, ``n_nonfinite``, ``unconverged_samples`` — indices — and ``unconverged_reasons``),
         ``evaluations``, ``final_loss``, ``realizable``, ``expert_damping``, ``u_limit``, ``n_test``,
-        ``time_learn_s`` (data, learning and held-out evaluation) and ``time_s`` (baselines included).
+        ``time_learn_s`` (data, learning and held-out evaluation) and ``time_s`` (baselines included),
+        ``nonfinite_values`` (the paths of values that were NaN/inf, written as ``None``: strict JSON).
     """
-    own = "learn_dynamics"
-    _check_learn_args(own, system, n_train, n_test, steps, seed, optimizer, warmup, tol, unconverged,
-                      warm_start, baselines, options, bc_epochs, max_step)
-    lr = _positive_float(lr if lr is not None else (0.05 if optimizer == "adam" else 1.0), "lr", own)
-    setup = imitation_setup(system, expert_damping=expert_damping, dtype=dtype, device=device,
-                            u_limit=u_limit)
+    setup, lr = _validated_learn_args(dict(locals()), "learn_dynamics")
     t_start = time.perf_counter()
     gen = torch.Generator().manual_seed(seed)
     x_test = setup.sample_starts(n_test, gen)
@@ -608,6 +788,49 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
     u_train, u_test = demos.u[:n_train], demos.u[n_train:]
     names, truth = setup.param_names, dict(setup.true_params)
     hist = _History(system, names, truth)
+    solve = _training_solver(setup, x_train, u_train, unconverged, warm_start, options)
+    z0 = torch.tensor([setup.init_params[k] for k in names], dtype=setup.dtype, device=setup.device).log()
+    z = _fit_params(setup, solve, z0, u_train, hist, optimizer=optimizer, steps=steps, warmup=warmup, lr=lr,
+                    tol=tol, max_step=max_step)
+    learned = dict(zip(names, z.exp().tolist()))
+    err = _rel_err(system, learned, truth)
+    mse, held_unconv = _heldout_mse(setup, learned, x_test, u_test)
+    mse0, _ = _heldout_mse(setup, dict(setup.init_params), x_test, u_test)
+    t_learn = time.perf_counter() - t_start
+    base = _run_baselines(setup, baselines, demos.select(list(range(n_train))), x_train, u_train, x_test,
+                          u_test, truth, hist.ident, bc_epochs, seed)
+    rec = {"system": system, "n_train": n_train, "seed": seed, "param_rel_err": err,
+           "identifiable": hist.ident, "identifiable_rel_err_max": _max(err[k] for k in hist.ident),
+           "params": learned, "params_true": _params_true(setup), "params_init": dict(setup.init_params),
+           "realizable": setup.expert_damping == 0, "expert_damping": setup.expert_damping,
+           "imitation_mse": mse, "imitation_mse_init": mse0, "u_limit": setup.u_limit, "n_test": n_test,
+           "baselines": base, "unconverged": hist.summary(unconverged),
+           "expert_unconverged": int((~demos.frames["converged"]).sum()), "heldout_unconverged": held_unconv,
+           "evaluations": len(hist.h["loss"]), "final_loss": hist.h["loss"][-1], "history": hist.h,
+           "time_s": time.perf_counter() - t_start, "time_learn_s": t_learn}
+    found: list[str] = []
+    rec = _strict_json(rec, "", found)
+    rec["nonfinite_values"] = found
+    return rec
+
+
+_LEARN_SIGNATURE = inspect.signature(learn_dynamics)
+
+
+def _validated_learn_args(a: dict[str, Any], own: str) -> tuple[ImitationSetup, float]:
+    """:func:`learn_dynamics`' arguments (``a``: by name) checked; its setup and step size."""
+    _check_learn_args(own, a["system"], a["n_train"], a["n_test"], a["steps"], a["seed"], a["optimizer"],
+                      a["warmup"], a["tol"], a["unconverged"], a["warm_start"], a["baselines"], a["options"],
+                      a["bc_epochs"], a["max_step"])
+    lr = a["lr"] if a["lr"] is not None else (0.05 if a["optimizer"] == "adam" else 1.0)
+    setup = imitation_setup(a["system"], expert_damping=a["expert_damping"], dtype=a["dtype"],
+                            device=a["device"], u_limit=a["u_limit"])
+    return setup, _positive_float(lr, "lr", own)
+
+
+def _training_solver(setup: ImitationSetup, x_train: Tensor, u_train: Tensor, unconverged: str,
+                     warm_start: str, options: ILQROptions | None):
+    """``solve(params) -> ImitationLoss`` on the training demos, warm-started as ``warm_start`` says."""
     warm = {"u": u_train if warm_start == "expert" else None}
 
     def solve(params):
@@ -618,30 +841,33 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
             warm["u"] = torch.where(torch.isfinite(u), u, torch.zeros((), dtype=u.dtype, device=u.device))
         return res
 
-    z0 = torch.tensor([setup.init_params[k] for k in names], dtype=dtype, device=setup.device).log()
-    z = _fit_params(setup, solve, z0, u_train, hist, optimizer=optimizer, steps=steps, warmup=warmup, lr=lr,
-                    tol=tol, max_step=max_step)
-    learned = dict(zip(names, z.exp().tolist()))
-    err = _rel_err(system, learned, truth)
-    ident = hist.ident
-    mse, held_unconv = _heldout_mse(setup, learned, x_test, u_test)
-    mse0, _ = _heldout_mse(setup, dict(setup.init_params), x_test, u_test)
-    t_learn = time.perf_counter() - t_start
-    base = _run_baselines(setup, baselines, demos.select(list(range(n_train))), x_train, u_train, x_test,
-                          u_test, truth, ident, bc_epochs, seed)
-    params_true = dict(truth)
+    return solve
+
+
+def _params_true(setup: ImitationSetup) -> dict[str, float]:
+    out = dict(setup.true_params)
     if setup.expert_damping > 0:
-        params_true["damping"] = setup.expert_damping
-        params_true["b/(m l^2)"] = setup.expert_damping / (truth["mass"] * truth["length"] ** 2)
-    return {"system": system, "n_train": n_train, "seed": seed, "param_rel_err": err, "identifiable": ident,
-            "identifiable_rel_err_max": max(err[k] for k in ident), "params": learned,
-            "params_true": params_true, "params_init": dict(setup.init_params),
-            "realizable": setup.expert_damping == 0, "expert_damping": setup.expert_damping,
-            "imitation_mse": mse, "imitation_mse_init": mse0, "u_limit": setup.u_limit, "n_test": n_test,
-            "baselines": base, "unconverged": hist.summary(unconverged),
-            "expert_unconverged": int((~demos.frames["converged"]).sum()), "heldout_unconverged": held_unconv,
-            "evaluations": len(hist.h["loss"]), "final_loss": hist.h["loss"][-1], "history": hist.h,
-            "time_s": time.perf_counter() - t_start, "time_learn_s": t_learn}
+        out["damping"] = setup.expert_damping
+        out["b/(m l^2)"] = setup.expert_damping / (out["mass"] * out["length"] ** 2)
+    return out
+
+
+def _max(values) -> float:
+    """``max`` that returns NaN when any value is NaN (Python's ``max`` depends on the order then)."""
+    vals = [float(v) for v in values]
+    return math.nan if any(math.isnan(v) for v in vals) else max(vals)
+
+
+def _strict_json(obj: Any, path: str, found: list[str]) -> Any:
+    """``obj`` with every non-finite float replaced by ``None``, its path appended to ``found``."""
+    if isinstance(obj, dict):
+        return {k: _strict_json(v, f"{path}.{k}" if path else str(k), found) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_strict_json(v, f"{path}[{i}]", found) for i, v in enumerate(obj)]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        found.append(path)
+        return None
+    return obj
 
 
 def _check_learn_args(own, system, n_train, n_test, steps, seed, optimizer, warmup, tol, unconverged,
@@ -662,6 +888,8 @@ def _check_learn_args(own, system, n_train, n_test, steps, seed, optimizer, warm
         raise ValueError(f"{own}: 'unconverged' must be one of {_UNCONVERGED}, got {unconverged!r}")
     if warm_start not in _WARM:
         raise ValueError(f"{own}: 'warm_start' must be one of {_WARM}, got {warm_start!r}")
+    if not isinstance(baselines, (str, Sequence, set, frozenset)):
+        raise TypeError(f"{own}: 'baselines' must be a sequence of {_BASELINES}, got {baselines!r}")
     if isinstance(baselines, str) or not all(b in _BASELINES for b in baselines):
         raise ValueError(f"{own}: 'baselines' must be a sequence of {_BASELINES}, got {baselines!r}")
     if options is not None and not isinstance(options, ILQROptions):
@@ -685,7 +913,7 @@ class _History:
         err = _rel_err(self.system, p, self.truth)
         h["loss"].append(float(loss))
         h["accepted"].append(bool(accepted))
-        h["identifiable_rel_err_max"].append(max(err[k] for k in self.ident))
+        h["identifiable_rel_err_max"].append(_max(err[k] for k in self.ident))
         for k in self.names:
             h["params"][k].append(p[k])
         h["n_unconverged"].append(len(bad))
@@ -750,7 +978,8 @@ def _gauss_newton_model(setup: ImitationSetup, solve, u_train: Tensor):
             if not u.requires_grad:
                 return torch.zeros(N * Tm, P, dtype=dtype, device=z.device)
             cols = [torch.autograd.grad(u[:, t], zz, w, retain_graph=t < Tm - 1)[0] for t in range(Tm)]
-            return torch.stack(cols, 1).reshape(N * Tm, P)
+            J = torch.where(inc[:, None, None], torch.stack(cols, 1), 0.0)  # excluded rows: 0, never NaN
+            return J.reshape(N * Tm, P)
 
         return float(res.loss.detach()), r, jac, res
 
@@ -766,7 +995,7 @@ def _run_baselines(setup: ImitationSetup, baselines, train_demos, x_train, u_tra
         p_id = system_identification(setup, train_demos)
         e_id = _rel_err(setup.system, p_id, truth)
         base["sysid"] = {"params": p_id, "param_rel_err": e_id,
-                         "identifiable_rel_err_max": max(e_id[k] for k in ident),
+                         "identifiable_rel_err_max": _max(e_id[k] for k in ident),
                          "imitation_mse": _heldout_mse(setup, p_id, x_test, u_test)[0],
                          "time_s": time.perf_counter() - t0}
     for kind in ("mlp", "lstm"):
@@ -779,9 +1008,27 @@ def _run_baselines(setup: ImitationSetup, baselines, train_demos, x_train, u_tra
 def imitation_study(system: str, n_trains: Sequence[int] = (10, 50, 100), seeds: Sequence[int] = (0, 1, 2, 3),
                     **kwargs: Any) -> list[dict[str, Any]]:
     """:func:`learn_dynamics` for every ``n_train`` in ``n_trains`` and every seed (keyword arguments passed
-    on); a list of records, ``n_train``-major."""
-    if isinstance(n_trains, (int, str)) or isinstance(seeds, (int, str)):
-        raise TypeError("imitation_study: 'n_trains' and 'seeds' must be sequences of ints")
-    if len(n_trains) == 0 or len(seeds) == 0:
-        raise ValueError("imitation_study: 'n_trains' and 'seeds' must not be empty")
+    on); a list of records, ``n_train``-major.  Every run's arguments are checked before the first runs."""
+    own = "imitation_study"
+    n_trains, seeds = _int_tuple(n_trains, "n_trains", own), _int_tuple(seeds, "seeds", own)
+    for n in n_trains:
+        for s in seeds:
+            try:
+                bound = _LEARN_SIGNATURE.bind(system, n, s, **kwargs)
+            except TypeError as e:
+                raise TypeError(f"{own}: {e} (keyword arguments are learn_dynamics')") from e
+            bound.apply_defaults()
+            _validated_learn_args(bound.arguments, own)
     return [learn_dynamics(system, n, s, **kwargs) for n in n_trains for s in seeds]
+
+
+def _int_tuple(v: Any, name: str, own: str) -> tuple:
+    if isinstance(v, (int, str)):
+        raise TypeError(f"{own}: '{name}' must be a sequence of ints, got {v!r}")
+    try:
+        out = tuple(v)
+    except TypeError:
+        raise TypeError(f"{own}: '{name}' must be a sequence of ints, got {type(v).__name__}") from None
+    if not out:
+        raise ValueError(f"{own}: '{name}' must not be empty")
+    return out
