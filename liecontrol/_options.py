@@ -487,6 +487,89 @@ def learn_bc(p: argparse.ArgumentParser) -> None:
     _common(p, out="out/learn/TASK", quiet=True)
 
 
+def _check_at_least(**least: int):
+    """A ``_check``: each named option (``n_demos=2``: ``--n-demos``) at least its bound."""
+    def check(args: argparse.Namespace) -> str | None:
+        for dest, lo in least.items():
+            v = getattr(args, dest)
+            if v is not None and v < lo:
+                return f"argument --{dest.replace('_', '-')}: expected at least {lo}, got {v}"
+        return None
+    return check
+
+
+def learn_costs(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--n-demos", type=positive_int, default=8, metavar="N",
+                   help="expert demonstrations (random starts), at least 2")
+    p.add_argument("--steps", type=positive_int, default=80, metavar="N",
+                   help="L-BFGS iterations of fit_cost")
+    p.add_argument("--warp", type=nonnegative_float, default=0.1,
+                   help="time-warp strength of the minimal-intervention demos")
+    p.add_argument("--noise", type=nonnegative_float, default=0.02,
+                   help="spatial noise (std) of the minimal-intervention demos")
+    p.add_argument("--seed", type=seed, default=0, metavar="S", help="seed of the starts and the variability")
+    _common(p, out="out/learn/costs", quiet=True, plots=True)
+    p.set_defaults(_check=_check_at_least(n_demos=2))
+
+
+def _check_learn_primitives(args: argparse.Namespace) -> str | None:
+    if args.n_demos < 2:
+        return f"argument --n-demos: expected at least 2 (a ProMP needs a covariance), got {args.n_demos}"
+    if args.T < 10:
+        return f"argument --T: expected at least 10 samples, got {args.T}"
+    from learning.demos import LETTERS
+
+    bad = [c for c in args.letters if c not in LETTERS]
+    if bad:
+        return f"argument --letters: {', '.join(bad)} not among the handwriting letters {' '.join(LETTERS)}"
+    return None
+
+
+def learn_primitives(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--letters", nargs="+", type=_letter_list, action=_Joined, default=("S", "C", "U", "N"),
+                   metavar="L", help="handwriting letters, one demo set each; space- or comma-separated")
+    p.add_argument("--n-demos", type=positive_int, default=8, metavar="N", help="demonstrations per letter")
+    p.add_argument("--T", type=positive_int, default=100, metavar="T", help="samples per demonstration (1 s)")
+    p.add_argument("--seed", type=seed, default=11, metavar="S", help="seed of the demos and the samples")
+    _common(p, out="out/learn/primitives", quiet=True, plots=True)
+    p.set_defaults(_check=_check_learn_primitives)
+
+
+#: what ``learn dynamics`` compares the learned model with (:func:`learning.imitation.learn_dynamics`)
+DYNAMICS_BASELINES = ("sysid", "mlp", "lstm")
+
+
+def learn_dynamics(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--system", choices=("pendulum", "cartpole"), default="pendulum",
+                   help="the system whose parameters are learned (Amos et al. 2018's two); the default run "
+                        "took about 1 min (pendulum) and 3 min (cart-pole) on a 2-core CPU, 1 thread")
+    p.add_argument("--n-train", type=positive_int, default=10, metavar="N", help="training demonstrations")
+    p.add_argument("--seeds", type=positive_int, default=4, metavar="K",
+                   help="number of seeds: runs with seeds 0 ... K-1 (a count here, not a list)")
+    p.add_argument("--baselines", nargs="*", choices=DYNAMICS_BASELINES, default=list(DYNAMICS_BASELINES),
+                   help="sysid: system identification on the transitions; mlp, lstm: behaviour cloning (the "
+                        "option alone: none)")
+    p.add_argument("--steps", type=positive_int, default=100, metavar="N",
+                   help="loss evaluations at most (one learner solve each)")
+    p.add_argument("--n-test", type=positive_int, default=50, metavar="N",
+                   help="held-out starts of the imitation MSE")
+    p.add_argument("--unconverged", choices=("exclude", "include"), default="exclude",
+                   help="a non-converged training solve: left out of that evaluation's loss, or kept with "
+                        "the implicit gradient at its last iterate (counted either way)")
+    _common(p, out="out/learn/dynamics", quiet=True, plots=True)
+
+
+def learn_manifold(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--n-demos", type=positive_int, default=12, metavar="N",
+                   help="orientation demos and stiffness demos, at least 2")
+    p.add_argument("--T", type=positive_int, default=40, metavar="T",
+                   help="steps per demonstration, at least 2")
+    p.add_argument("--horizon", type=positive_int, default=8, metavar="N", help="horizon of the tracking MPC")
+    p.add_argument("--seed", type=seed, default=3, metavar="S", help="seed of the demos")
+    _common(p, out="out/learn/manifold", quiet=True, plots=True)
+    p.set_defaults(_check=_check_at_least(n_demos=2, T=2))
+
+
 # ------------------------------------------------------------------------------------------ reproduce
 
 
@@ -623,6 +706,18 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
      "time"),
     (("learn", "bc"), learn_bc, "liecontrol.learn",
      "behaviour cloning from the MPC expert: an MLP policy and the MPC's cost weights vs number of demos"),
+    (("learn", "costs"), learn_costs, "liecontrol.learn_demos",
+     "inverse optimal control: LQT weights and a via point recovered from expert demos; minimal-intervention "
+     "gains from their variability"),
+    (("learn", "primitives"), learn_primitives, "liecontrol.learn_demos",
+     "movement primitives as LQT on handwriting letters: DMP reproduction and push recovery, ProMP "
+     "distribution, via-point conditioning and samples"),
+    (("learn", "dynamics"), learn_dynamics, "liecontrol.learn_demos",
+     "pendulum or cart-pole parameters learned by imitation through the differentiable MPC, vs system "
+     "identification and MLP/LSTM behaviour cloning (Amos et al. 2018)"),
+    (("learn", "manifold"), learn_manifold, "liecontrol.learn_demos",
+     "orientation and stiffness demos on SO(3), S3 and SPD: per-step Gaussians, their mean tracked by the "
+     "on-manifold MPC, a stiffness target"),
     (("bench", "lie"), bench_lie, "liecontrol.bench.lie",
      "Lie-group operations vs pypose and roma: speed and round-trip error"),
     (("bench", "lqr"), bench_lqr, "liecontrol.bench.lqr", "batched LQR vs pypose and mpc.pytorch"),
