@@ -524,7 +524,7 @@ def ilqr(
     diverged = reason == int(Reason.DIVERGED)
     x0s = torch.where(diverged.unsqueeze(-1), zero, x0s)  # as _solve carried it on
     if grad is GradMode.IMPLICIT and torch.is_grad_enabled():
-        x, u = ilqr_implicit(problem, x0s, x, u, free, bs, lo, hi, compile=bool(opts.compile))
+        x, u = _implicit_finite(problem, x0s, x, u, free, bs, lo, hi, zero, bool(opts.compile))
     with torch.no_grad() if grad is GradMode.NONE else contextlib.nullcontext():
         cost = problem.cost.evaluate(x, u).expand(bs)
     nanv = torch.full((), math.nan, **kw)
@@ -575,6 +575,18 @@ def _eager_iteration(dyn, cost, x0, it: Iterate, lo, hi, lo_tm, hi_tm, k_warm, b
         return it, k_warm, False
     it, accept = line_search(dyn, cost, x0, it, K, k, dV1, dV2, lo, hi, bs, s, dyn_key)
     return it, torch.where(accept.unsqueeze(-1), torch.zeros((), dtype=k.dtype, device=k.device), k), True
+
+
+def _implicit_finite(problem, x0s, x, u, free, bs, lo, hi, zero, compile: bool):
+    """:func:`~controllers.implicit.ilqr_implicit` for the elements whose trajectory is finite; an element
+    whose iterate overflowed (e.g. ``SINGULAR_QUU`` at absurd parameters) keeps its values and gets no
+    derivative.  Its Newton data are built at a zero trajectory instead: at the non-finite one the
+    derivatives w.r.t. shared parameters are NaN even under a zero cotangent (0·NaN), and would reach
+    every element's gradient through their sum."""
+    fin = (torch.isfinite(x).flatten(-2).all(-1) & torch.isfinite(u).flatten(-2).all(-1))[..., None, None]
+    xi, ui = ilqr_implicit(problem, x0s, torch.where(fin, x, zero), torch.where(fin, u, zero), free, bs, lo,
+                           hi, compile=compile)
+    return torch.where(fin, xi, x), torch.where(fin, ui, u)
 
 
 def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):

@@ -370,13 +370,18 @@ def _newton_data_analytic(problem, x0, x, u, bs, compile):
 
 def _costates(cost, x: torch.Tensor, u: torch.Tensor, A: torch.Tensor, bs: torch.Size,
               compiled: bool = False) -> torch.Tensor:
-    """``λ (*B, T+1, n)``: ``λ_T = ∂l/∂x_T``, ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}`` (``A`` time-major)."""
+    """``λ (*B, T+1, n)``: ``λ_T = ∂l/∂x_T``, ``λ_t = ∂l/∂x_t + A_tᵀ λ_{t+1}`` (``A`` time-major).
+
+    An element whose costates overflow (unstable ``A`` at absurd parameters: never a certified solution)
+    gets ``λ = 0``: an infinite ``λ`` would make the Newton data's derivatives w.r.t. shared parameters NaN
+    even under a zero cotangent, and through their sum every element's gradient."""
     T, n = u.shape[-2], x.shape[-1]
     with torch.no_grad():
         gx, *_ = cost_derivatives(cost, x, u)
         gx = gx.expand(*bs, T + 1, n).reshape(-1, T + 1, n)
         M = A.mT.expand(T, *bs, n, n).reshape(T, -1, n, n).movedim(0, 1)
         lam = _k.lin_sweep(M, gx[:, :T], gx[:, T], True, compiled)
+        lam = torch.where(torch.isfinite(lam).flatten(1).all(-1)[:, None, None], lam, 0.0)
         return lam.reshape(*bs, T + 1, n)
 
 
