@@ -31,7 +31,8 @@ import torch.distributed as dist
 from torch import Tensor, nn
 
 __all__ = ["init_from_env", "is_distributed", "rank", "world_size", "local_rank", "is_main", "shard_bounds",
-           "shard", "all_reduce_sum", "gather_along", "gather_objects", "wrap_ddp", "shutdown"]
+           "shard", "all_reduce_sum", "gather_along", "gather_objects", "wrap_ddp", "shutdown", "RankError",
+           "error_info", "raise_together", "raise_gathered"]
 
 _BACKENDS = ("gloo", "nccl")
 
@@ -77,8 +78,11 @@ def init_from_env(backend: str | None = None, device: torch.device | str = "cpu"
     Raises:
         ValueError: an unknown backend or device, ``"cuda"`` without CUDA, or ``"nccl"`` for CPU tensors.
     """
-    dev = torch.device(device)
-    if dev.type not in ("cpu", "cuda"):
+    try:
+        dev = torch.device(device) if isinstance(device, (str, torch.device)) else None
+    except RuntimeError:
+        dev = None
+    if dev is None or dev.type not in ("cpu", "cuda"):
         raise ValueError(f"init_from_env: argument 'device' must be 'cpu' or 'cuda', got {device!r}")
     cuda = dev.type == "cuda"
     if cuda and not torch.cuda.is_available():
@@ -94,8 +98,28 @@ def init_from_env(backend: str | None = None, device: torch.device | str = "cpu"
         dev = torch.device("cuda", local_rank() if "WORLD_SIZE" in os.environ else (dev.index or 0))
         torch.cuda.set_device(dev)
     if "WORLD_SIZE" in os.environ and not is_distributed():
+        _check_env()
         dist.init_process_group(backend=backend, init_method="env://")
     return dev
+
+
+_ENV = ("WORLD_SIZE", "RANK", "MASTER_ADDR", "MASTER_PORT")
+
+
+def _check_env() -> None:
+    """torchrun's variables all set, the counts integers (else a ValueError saying how to launch)."""
+    missing = [k for k in _ENV if not os.environ.get(k)]
+    if missing:
+        raise ValueError(f"init_from_env: WORLD_SIZE is set but {', '.join(missing)} not: launch with "
+                         "torchrun (or python -m torch.distributed.run), which sets them, or unset "
+                         "WORLD_SIZE for one process")
+    for k in ("WORLD_SIZE", "RANK", "LOCAL_RANK", "MASTER_PORT"):
+        v = os.environ.get(k, "0")
+        if not v.isdigit():
+            raise ValueError(f"init_from_env: environment variable {k} must be an integer >= 0, got {v!r}")
+    if not int(os.environ["RANK"]) < int(os.environ["WORLD_SIZE"]):
+        raise ValueError(f"init_from_env: RANK {os.environ['RANK']} is not below WORLD_SIZE "
+                         f"{os.environ['WORLD_SIZE']}")
 
 
 def shutdown() -> None:
@@ -111,6 +135,9 @@ def shard_bounds(n: int, r: int | None = None, w: int | None = None) -> tuple[in
         raise ValueError(f"shard_bounds: argument 'n' must be an int >= 0, got {n!r}")
     r = rank() if r is None else r
     w = world_size() if w is None else w
+    for name, v in (("r", r), ("w", w)):
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ValueError(f"shard_bounds: argument {name!r} must be an int, got {v!r}")
     if not 0 <= r < w:
         raise ValueError(f"shard_bounds: rank {r} is not in [0, {w})")
     q, extra = divmod(n, w)
@@ -167,6 +194,39 @@ def gather_objects(obj: Any) -> list[Any]:
     out: list[Any] = [None] * world_size()
     dist.all_gather_object(out, obj)
     return out
+
+
+class RankError(RuntimeError):
+    """Raised on the ranks that did not fail when another rank raised (:func:`raise_together`): every rank
+    stops together instead of waiting in a collective that the failed rank never reaches."""
+
+
+def error_info(error: BaseException | None) -> tuple[str, str] | None:
+    """``(type name, message)`` of ``error`` (plain strings travel to the other ranks), ``None`` for none."""
+    return None if error is None else (type(error).__name__, str(error))
+
+
+def raise_gathered(error: BaseException | None, infos: list[tuple[str, str] | None], what: str) -> None:
+    """Given every rank's :func:`error_info` (already gathered, in rank order): a rank that failed re-raises
+    its own ``error``; the others raise :class:`RankError` naming the first rank that failed and its error.
+    Nothing when no rank failed."""
+    if error is not None:
+        raise error
+    failed = [(r, i) for r, i in enumerate(infos) if i is not None]
+    if failed:
+        r, (name, msg) = failed[0]
+        raise RankError(f"{what}: rank {r} raised {name}: {msg}")
+
+
+def raise_together(error: BaseException | None, what: str) -> None:
+    """Collective (every rank calls it, with its exception or ``None``): when any rank failed, every rank
+    raises (:func:`raise_gathered`; one ``all_gather_object``).  In a single process ``error`` is raised
+    when given."""
+    if world_size() == 1:
+        if error is not None:
+            raise error
+        return
+    raise_gathered(error, gather_objects(error_info(error)), what)
 
 
 def wrap_ddp(module: nn.Module) -> nn.Module:

@@ -358,15 +358,17 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
         E = len(seeds)
         if E < 1:
             raise ValueError("evaluate: argument 'seeds' is empty")
+    T = task.max_episode_steps if max_episode_steps is None else int_arg(max_episode_steps,
+                                                                         "max_episode_steps", "evaluate")
+    if timing_steps is not None:
+        int_arg(timing_steps, "timing_steps", "evaluate")
+    if not isinstance(distributed, bool):
+        raise TypeError(f"evaluate: argument 'distributed' must be a bool, got {distributed!r}")
     if distributed and _dist.world_size() > 1:
         return _evaluate_sharded(policy, task, seeds, num_envs=num_envs, max_episode_steps=max_episode_steps,
                                  device=device, dtype=dtype, progress=progress, timing_batch1=timing_batch1,
                                  timing_steps=timing_steps, compile=compile)
     N = min(num_envs, E)
-    T = task.max_episode_steps if max_episode_steps is None else int_arg(max_episode_steps,
-                                                                         "max_episode_steps", "evaluate")
-    if timing_steps is not None:
-        int_arg(timing_steps, "timing_steps", "evaluate")
     pol = as_policy(policy, task)
     m = task.m
     scale = task.u_scale(dtype, device)
@@ -527,8 +529,14 @@ def _evaluate_sharded(policy: Any, task: Task, seeds: list[int], **kw: Any) -> E
     lo, hi = _dist.shard_bounds(len(seeds))
     main = _dist.is_main()
     kw.update(progress=kw["progress"] and main, timing_batch1=kw["timing_batch1"] and main)
-    mine = evaluate(policy, task, seeds=seeds[lo:hi], distributed=False, **kw) if hi > lo else None
-    return _merge([r for r in _dist.gather_objects(mine) if r is not None])
+    mine, error = None, None
+    try:  # an exception on one rank is raised on every rank (never a rank left waiting in the gather)
+        mine = evaluate(policy, task, seeds=seeds[lo:hi], distributed=False, **kw) if hi > lo else None
+    except Exception as e:
+        error = e
+    parts = _dist.gather_objects((mine, _dist.error_info(error)))
+    _dist.raise_gathered(error, [i for _, i in parts], "evaluate")
+    return _merge([r for r, _ in parts if r is not None])
 
 
 def _merge(parts: list[EvalResult]) -> EvalResult:

@@ -733,13 +733,18 @@ def fit_cost(demos: Demonstrations | Tensor, dynamics: Any, model: LQTCostModel,
     warm: dict[str, Tensor | None] = {"u": None if u_d is None else u_d.detach()}
 
     def evaluate() -> tuple[IOCLoss, Tensor]:
-        cost = model if shards is None else shards.ddp()
-        out = ioc_loss(cost, dynamics, x_d, u_d, solver=solver, control_weight=control_weight,
-                       u_init=warm["u"] if solver == "ilqr" else None, options=options,
-                       unconverged=unconverged)
-        out, objective, counts = (out, out.loss, _counts(out)) if shards is None else shards.reduce(out)
-        if counts[0] == 0:
-            raise _no_usable_demo(out, own)
+        def loss() -> IOCLoss:
+            return ioc_loss(model if shards is None else shards.ddp(), dynamics, x_d, u_d, solver=solver,
+                            control_weight=control_weight, u_init=warm["u"] if solver == "ilqr" else None,
+                            options=options, unconverged=unconverged)
+
+        if shards is None:
+            out = loss()
+            objective, counts = out.loss, _counts(out)
+        else:
+            out, objective, counts = shards.reduce(loss)
+        if counts[0] == 0:  # the counts are global: every rank raises, with every demo's status
+            raise _no_usable_demo(out if shards is None else shards.gather(out), own)
         if solver == "ilqr":
             fin = torch.isfinite(out.u).all((-1, -2), keepdim=True)
             warm["u"] = torch.where(fin, out.u.detach(), out.u.new_zeros(()))
@@ -768,26 +773,38 @@ class _Shards:
     """This rank's block of the demos under torchrun and the collectives of :func:`fit_cost`."""
 
     def __init__(self, x_d: Tensor, u_d: Tensor | None, model: LQTCostModel, own: str):
-        self.batch = x_d.shape[:-2]
+        # the demos' batch shape as a single process sees it: that of x and u (T, m) or (*B, T, m) broadcast
+        self.batch = x_d.shape[:-2] if u_d is None else torch.broadcast_shapes(x_d.shape[:-2], u_d.shape[:-2])
         self.n = math.prod(self.batch)
         self.w = _dist.world_size()
+        self.own = own
         if self.n < self.w:
             raise ValueError(f"{own}: {self.n} demos cannot be shared by {self.w} ranks (at least one each)")
         sl = _dist.shard(self.n)
-        self.x = x_d.reshape(self.n, *x_d.shape[-2:])[sl]
-        self.u = None if u_d is None else u_d.reshape(self.n, *u_d.shape[-2:])[sl]
+        self.x = x_d.expand(*self.batch, *x_d.shape[-2:]).reshape(self.n, *x_d.shape[-2:])[sl]
+        self.u = None if u_d is None else u_d.expand(*self.batch, *u_d.shape[-2:]).reshape(
+            self.n, *u_d.shape[-2:])[sl]
         self.ddp = _dist.wrap_ddp(model)
 
-    def reduce(self, out: IOCLoss) -> tuple[IOCLoss, Tensor, list[int]]:
-        """``(out with the global loss, the objective to backpropagate, the global counts)``: one
-        all-reduce of ``[sum of usable errors, counts]``; the objective ``W · sum / N_usable`` gives, after
-        DDP's average over ``W`` ranks, the gradient of the global mean."""
-        zero = torch.zeros((), dtype=out.per_demo.dtype, device=out.per_demo.device)
-        local = torch.where(out.usable, out.per_demo, zero).sum()
-        counts = torch.tensor(_counts(out), dtype=local.dtype, device=local.device)
-        total = _dist.all_reduce_sum(torch.cat([local.detach()[None], counts]))
+    def reduce(self, loss: Any) -> tuple[IOCLoss, Tensor, list[int]]:
+        """``(out with the global loss, the objective to backpropagate, the global counts)`` of
+        ``out = loss()`` on this rank's demos: one all-reduce of ``[sum of usable errors, counts, failed]``;
+        the objective ``W · sum / N_usable`` gives, after DDP's average over ``W`` ranks, the gradient of the
+        global mean.  When ``loss()`` raised on any rank, every rank raises (never a rank left waiting)."""
+        try:
+            out, error = loss(), None
+        except Exception as e:
+            out, error = None, e
+        like = self.x
+        local = like.new_zeros(()) if out is None else torch.where(out.usable, out.per_demo,
+                                                                    like.new_zeros(())).sum()
+        counts = [0] * 4 if out is None else _counts(out)
+        flags = torch.tensor([*counts, error is not None], dtype=local.dtype, device=local.device)
+        total = _dist.all_reduce_sum(torch.cat([local.detach()[None], flags]))
+        if bool(total[-1] > 0):
+            _dist.raise_together(error, self.own)
         n_use = total[1]
-        return out._replace(loss=total[0] / n_use), local * (self.w / n_use), [int(c) for c in total[1:]]
+        return out._replace(loss=total[0] / n_use), local * (self.w / n_use), [int(c) for c in total[1:-1]]
 
     def gather(self, out: IOCLoss) -> IOCLoss:
         """The per-demo fields of every rank, in demo order, with the demos' batch shape."""

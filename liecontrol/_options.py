@@ -498,15 +498,34 @@ def _check_at_least(**least: int):
     return check
 
 
+#: ``learn costs``: beyond these the demos' time warp loses its resolution (rate ratios e^±50 round steps to
+#: zero, :func:`learning.demos.time_warp`) and the noise's squares leave float64 (std 1e160: variance inf)
+LEARN_WARP_MAX = 50.0
+LEARN_NOISE_MAX = 1e3
+
+
+def _float_at_most(hi: float):
+    """A finite number in ``[0, hi]`` (an argparse type)."""
+    def check(s: str) -> float:
+        v = nonnegative_float(s)
+        if v > hi:
+            raise argparse.ArgumentTypeError(f"expected a number between 0 and {hi:g}, got {s}")
+        return v
+    check.__name__ = "number"
+    return check
+
+
 def learn_costs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--n-demos", type=positive_int, default=8, metavar="N",
                    help="expert demonstrations (random starts), at least 2")
     p.add_argument("--steps", type=positive_int, default=80, metavar="N",
                    help="L-BFGS iterations of fit_cost")
-    p.add_argument("--warp", type=nonnegative_float, default=0.1,
-                   help="time-warp strength of the minimal-intervention demos")
-    p.add_argument("--noise", type=nonnegative_float, default=0.02,
-                   help="spatial noise (std) of the minimal-intervention demos")
+    p.add_argument("--warp", type=_float_at_most(LEARN_WARP_MAX), default=0.1,
+                   help="time-warp strength of the minimal-intervention demos (local speed factors about "
+                        f"e^±warp), 0 ... {LEARN_WARP_MAX}")
+    p.add_argument("--noise", type=_float_at_most(LEARN_NOISE_MAX), default=0.02,
+                   help="spatial noise (std of the position offsets) of the "
+                        f"minimal-intervention demos, 0 ... {LEARN_NOISE_MAX:g}")
     p.add_argument("--seed", type=seed, default=0, metavar="S", help="seed of the starts and the variability")
     _common(p, out="out/learn/costs", quiet=True, plots=True)
     p.set_defaults(_check=_check_at_least(n_demos=2))
@@ -541,8 +560,9 @@ DYNAMICS_BASELINES = ("sysid", "mlp", "lstm")
 
 def learn_dynamics(p: argparse.ArgumentParser) -> None:
     p.add_argument("--system", choices=("pendulum", "cartpole"), default="pendulum",
-                   help="the system whose parameters are learned (Amos et al. 2018's two); the default run "
-                        "took about 1 min (pendulum) and 3 min (cart-pole) on a 2-core CPU, 1 thread")
+                   help="the system whose parameters are learned (Amos et al. 2018's two); with the other "
+                        "options left as they are a run took about 1 min (pendulum) and 3 min (cart-pole) on "
+                        "a 2-core CPU, 1 thread")
     p.add_argument("--n-train", type=positive_int, default=10, metavar="N", help="training demonstrations")
     p.add_argument("--seeds", type=positive_int, default=4, metavar="K",
                    help="number of seeds: runs with seeds 0 ... K-1 (a count here, not a list)")
@@ -550,7 +570,8 @@ def learn_dynamics(p: argparse.ArgumentParser) -> None:
                    help="sysid: system identification on the transitions; mlp, lstm: behaviour cloning (the "
                         "option alone: none)")
     p.add_argument("--steps", type=positive_int, default=100, metavar="N",
-                   help="loss evaluations at most (one learner solve each)")
+                   help="budget of loss evaluations (one learner solve each; L-BFGS may finish its last line "
+                        "search past it: the JSON's 'evaluations' is the count)")
     p.add_argument("--n-test", type=positive_int, default=50, metavar="N",
                    help="held-out starts of the imitation MSE")
     p.add_argument("--unconverged", choices=("exclude", "include"), default="exclude",

@@ -42,11 +42,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import time
 from pathlib import Path
 
 import torch
 
+from liecontrol._args import OptionError
 from liecontrol._progress import bar, write
 from liecontrol.report import fmt, markdown_cell, print_table, restores_threads
 
@@ -75,6 +77,8 @@ PRIMITIVES_TOL = {"dmp_reproduction_rms": 1e-2, "dmp_push_to_goal": 7e-3, "promp
 MANIFOLD_TOL = {"quaternion_gap_rad": 1e-8, "inside_95": 0.85, "tracking_final_over_initial": 0.01,
                 "stiffness_dist_factor": 2.0}
 STIFFNESS_NOISE = 0.3
+#: ``manifold``: the tracking MPC starts at the first mean rotated by Exp of this rotation vector
+START_OFFSET = (0.3, -0.2, 0.25)
 DYNAMICS_TOL = {"identifiable_rel_err": 0.01}
 
 
@@ -450,8 +454,9 @@ def _dynamics_report(runs: list[dict], settings: dict) -> list[str]:
     phys = [k for k in r0["params_true"] if k in r0["param_rel_err"] and k not in r0["identifiable"]]
     st = settings
     lines = [f"System {st['system']}, {st['n_train']} training demos, seeds 0 … {st['seeds'] - 1}, "
-             f"{r0['n_test']} held-out starts, up to {st['steps']} loss evaluations, unconverged training "
-             f"solves: {st['unconverged']}; baselines: {', '.join(st['baselines']) or 'none'}.  True "
+             f"{r0['n_test']} held-out starts, a budget of {st['steps']} loss evaluations (`evals`: those "
+             f"taken), unconverged training solves: {st['unconverged']}; baselines: "
+             f"{', '.join(st['baselines']) or 'none'}.  True "
              f"parameters {r0['params_true']}, learner's start {r0['params_init']}.  `err NAME`: relative "
              f"error of the identifiable parameters ({', '.join(r0['identifiable'])}); `mse`: held-out "
              "imitation MSE of the learned model (`mse_init`: the initial model; `mse sysid|mlp|lstm`: the "
@@ -527,7 +532,7 @@ def _orientation_part(n_demos: int, T: int, horizon: int, g: torch.Generator) ->
     st_q = manifold_statistics(q, "S3")
     e = so3.log(st.mean.mT @ R)
     maha = (e.unsqueeze(-2) @ torch.linalg.solve(st.covariance, e.unsqueeze(-1))).reshape(n_demos, T)
-    x0 = st.mean[0] @ so3.exp(torch.tensor([0.3, -0.2, 0.25], dtype=torch.float64))
+    x0 = st.mean[0] @ so3.exp(torch.tensor(START_OFFSET, dtype=torch.float64))
     trk = track_mean(BodyRateSO3(demos.dt), st.mean, st.covariance, x0, horizon=horizon, R=1.0,
                      regularization=1e-4)
     return {"R": R, "st": st, "st_q": st_q, "maha": maha, "track": trk,
@@ -615,7 +620,8 @@ def _manifold_report(rec: dict) -> list[str]:
     return ([f"{s['n_demos']} SO(3) orientation demos of T = {s['T']} steps (`orientation_demos`, agreeing "
              "around s = 0.6), their per-step Karcher mean and tangent covariance (`manifold_statistics`; "
              "the same demos as unit quaternions with random signs for S³), the mean tracked from a start "
-             f"0.45 rad away by the error-state MPC (`track_mean`, horizon {s['horizon']}, precision "
+             f"{c(v['tracking_error_initial_rad'])} rad away by the error-state MPC (`track_mean`, horizon "
+             f"{s['horizon']}, precision "
              "(Σ_t + 10⁻⁴ I)⁻¹); "
              f"{s['n_demos']} 3×3 stiffness demos (`stiffness_demos`, log-scale noise σ = {STIFFNESS_NOISE}) "
              "and their Karcher "
@@ -724,25 +730,59 @@ def _run_pipeline(args: argparse.Namespace) -> tuple[object, dict, dict, list[st
     return public, rec["checks"], rec["tolerances"], report(rec), lambda p: plot(rec, p)
 
 
+def _prepare_out(args: argparse.Namespace) -> Path:
+    """The output folder (made now, before minutes of work) and ``--json``'s folder; a folder the system
+    refuses is an option error (exit status 2), never a traceback after the run."""
+    root = Path(args.out) if args.out is not None else Path("out/learn") / args.subcommand
+    for option, folder in (("--out", root), ("--json", Path(args.json).parent if args.json else None)):
+        if folder is None:
+            continue
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise OptionError(option, f"cannot create {folder}: {e.strerror or e}") from None
+    return root
+
+
+def _write(option: str, write, path: Path) -> Path:
+    """``write(path)``, a system refusal reported as an error of ``option`` (exit status 2)."""
+    try:
+        write(path)
+    except OSError as e:
+        raise OptionError(option, f"cannot write {path}: {e.strerror or e}") from None
+    return path
+
+
+def _merged_report(path: Path, name: str, text: str) -> str:
+    """``text`` (this pipeline's report, first) followed by the sections of the other ``learn`` pipelines
+    already in ``path`` (several pipelines written into one ``--out`` keep every report)."""
+    try:
+        old = path.read_text()
+    except (OSError, UnicodeDecodeError):
+        return text
+    others = [p for p in PIPELINES if p != name]
+    keep = [q.rstrip("\n") + "\n" for q in re.split(r"(?m)^(?=# liecontrol learn )", old)
+            if any(q.startswith(f"# liecontrol learn {p}\n") for p in others)]
+    return "\n".join([text.rstrip("\n") + "\n", *keep])
+
+
 def run(args: argparse.Namespace) -> int:
     """``liecontrol learn costs|primitives|dynamics|manifold`` (module docstring): 1 when a check fails."""
     name = args.subcommand
     t0 = time.perf_counter()
+    root = _prepare_out(args)
     data, checks, tol, lines, plot = _run_pipeline(args)
-    root = Path(args.out) if args.out is not None else Path("out/learn") / name
-    root.mkdir(parents=True, exist_ok=True)
-    files = [_write_json(root / f"{name}.json", data)]
+    files = [_write("--out", lambda p: _write_json(p, data), root / f"{name}.json")]
     if args.json:
-        files.append(_write_json(args.json, data))
+        files.append(_write("--json", lambda p: _write_json(p, data), Path(args.json)))
     figure = [] if args.no_plots else [f"![{name}]({name}.png)", ""]
     if not args.no_plots:
-        plot(root / f"{name}.png")
-        files.append(root / f"{name}.png")
+        files.append(_write("--out", plot, root / f"{name}.png"))
     took = time.perf_counter() - t0
-    text = [f"# liecontrol learn {name}", ""] + lines + _checks_lines(checks, tol) + [
-        "", f"Wall time {took:.1f} s (torch threads {args.threads}).", ""] + figure
-    (root / "report.md").write_text("\n".join(text))
-    files.append(root / "report.md")
+    text = "\n".join([f"# liecontrol learn {name}", ""] + lines + _checks_lines(checks, tol) + [
+        "", f"Wall time {took:.1f} s (torch threads {args.threads}).", ""] + figure)
+    report = root / "report.md"
+    files.append(_write("--out", lambda p: p.write_text(_merged_report(p, name, text)), report))
     failed = [k for k, v in checks.items() if not v]
     print(f"checks: {'all passed' if not failed else 'FAILED ' + ', '.join(failed)} ({len(checks)})")
     print(f"wrote {', '.join(map(str, files))} in {took:.0f} s")

@@ -14,11 +14,7 @@ on one rank with the same seed, and the policy is per element).
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,26 +24,15 @@ from torch import nn
 
 import learning.distributed as dh
 from learning.ioc import fit_cost
+from tests.learning.ddp_launch import load_worker, torchrun
 
-ROOT = Path(__file__).resolve().parents[2]
 WORKER = Path(__file__).with_name("_ddp_worker.py")
 REL_TOL = 1e-8
 
 
-def _worker_module():
-    spec = importlib.util.spec_from_file_location("_ddp_worker", WORKER)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def _launch(out: Path) -> None:
-    env = dict(os.environ, OMP_NUM_THREADS="1", MKL_NUM_THREADS="1",
-               PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node=2", str(WORKER),
-           "--out", str(out), "--backend", "gloo"]
-    p = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
-    assert p.returncode == 0, p.stdout[-3000:] + p.stderr[-3000:]
+    rc, log, _ = torchrun(WORKER, ["--out", str(out), "--backend", "gloo"])
+    assert rc == 0, log[-6000:]
 
 
 def test_two_processes_match_one_process(tmp_path):
@@ -55,7 +40,7 @@ def test_two_processes_match_one_process(tmp_path):
     got = torch.load(tmp_path / "ddp.pt", weights_only=True)
     got["eval"]["meta"] = json.loads(got["eval"]["meta"])
     assert got["world_size"] == 2 and got["backend"] == "gloo"
-    ref = _worker_module().run(torch.device("cpu"))
+    ref = load_worker(WORKER).run(torch.device("cpu"))
     for k in ("lbfgs", "adam"):
         g, r = got[k], ref[k]
         assert got["rank_spread"][k] == 0.0  # both ranks hold bit-identical parameters
@@ -146,7 +131,7 @@ def test_bad_inputs(monkeypatch):
     with pytest.raises(ValueError, match="rank 2"):
         dh.shard_bounds(4, 2, 2)
     # fit_cost in a (fake) world of 2 ranks with a single demo: refused before any collective
-    w = _worker_module()
+    w = load_worker(WORKER)
     dyn, xd, init = w.problem(torch.device("cpu"))
     monkeypatch.setattr(dh, "world_size", lambda: 2)
     with pytest.raises(ValueError, match="1 demos cannot be shared by 2 ranks"):
