@@ -106,6 +106,21 @@ the initial model 21-31; behaviour cloning 0.6-3.8).
 Held-out imitation MSE: the learner's MPC (learned parameters, solved from zero controls like the expert)
 against the expert's controls on ``n_test`` held-out starts, in squared control units (N²m² for the
 pendulum, N² for the cart-pole; ``u_limit`` is in the record to normalize).
+
+**Under torchrun** (``W > 1`` ranks of :mod:`torch.distributed`, every rank calling :func:`learn_dynamics`
+with the same arguments; ``docs/distributed.md``): every rank draws the same starts and solves the expert's
+demos (one batched solve, unchanged), then each rank solves only its contiguous block of the training demos
+(:func:`learning.distributed.shard`) in every loss evaluation.  The loss is the global mean: one all-reduce
+of this rank's sum (included errors plus the worst error per non-finite sample) and count per evaluation.
+L-BFGS gets the global gradient: each rank backpropagates its sum over the global count and the gradient of
+``log θ`` is all-reduced after the backward (``θ`` is a plain tensor, not an ``nn.Module``: this explicit
+all-reduce of ``.grad`` is the analogue of DistributedDataParallel's).  Gauss-Newton gathers the residuals
+and Jacobian rows of every rank in sample order, so that every rank forms the same normal equations and
+takes the same step.  The per-sample statuses are gathered for the history (global sample indices), so
+every rank's history is the same; the held-out evaluation runs on every rank unchanged (same parameters,
+same numbers); the baselines run on rank 0 only and its baseline records and the slowest rank's times are
+shared, so that every rank returns the same record (plus ``"world_size"``).  A single process runs none of
+this and is bit-for-bit what it was; ``W`` ranks match it to round-off (the sums are taken in another order).
 """
 
 from __future__ import annotations
@@ -114,7 +129,7 @@ import inspect
 import math
 import time
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -125,6 +140,7 @@ from controllers.ilqr import ILQROptions, ILQRProblem, ILQRSolution, ilqr
 from controllers.problem import Reason
 from controllers.systems.cartpole import CartPole
 from controllers.systems.pendulum import Pendulum
+from learning import distributed as _dist
 from learning.bc import MLPPolicy
 from learning.demos import Demonstrations, expert_demos
 
@@ -397,6 +413,15 @@ def imitation_loss(setup: ImitationSetup, params: Mapping[str, Tensor | float], 
     never read as a perfect fit (measured: before this rule, a cart-pole fit whose 50 solves all diverged
     saw loss 0 and stopped there).  When no sample is usable at all (every one excluded), ``loss`` is that
     largest error too."""
+    return _imitation(setup, params, x0, u_expert, u_init=u_init, grad=grad, unconverged=unconverged,
+                      options=options)[0]
+
+
+def _imitation(setup: ImitationSetup, params: Mapping[str, Tensor | float], x0: Tensor, u_expert: Tensor, *,
+               u_init: Tensor | None = None, grad: str = "implicit", unconverged: str = "exclude",
+               options: ILQROptions | None = None) -> tuple[ImitationLoss, Tensor, Tensor]:
+    """:func:`imitation_loss` (checked) and the sum and the count its mean divides (0-d; ``loss`` is
+    ``total / count``, or the largest error when ``count`` is 0): the terms a sharded run all-reduces."""
     own = "imitation_loss"
     if unconverged not in _UNCONVERGED:
         raise ValueError(f"{own}: 'unconverged' must be one of {_UNCONVERGED}, got {unconverged!r}")
@@ -415,7 +440,7 @@ def imitation_loss(setup: ImitationSetup, params: Mapping[str, Tensor | float], 
     total = torch.where(inc, per, torch.zeros((), dtype=per.dtype, device=per.device)).sum() + worst * n_bad
     loss = torch.where(count > 0, total / count.clamp(min=1), worst)
     per = torch.where(finite, per, math.nan).detach()
-    return ImitationLoss(loss=loss, per_sample=per, included=inc, solution=sol)
+    return ImitationLoss(loss=loss, per_sample=per, included=inc, solution=sol), total, count
 
 
 def _gated(setup: ImitationSetup, params: Mapping[str, Tensor | float], N: int, gate: dict[str, Tensor]
@@ -514,9 +539,11 @@ def _positive_float(v: Any, name: str, own: str) -> float:
 
 
 def _fit_log_params(loss_fn, z0: Tensor, steps: int, lr: float, tol: float, optimizer: str = "lbfgs",
-                    on_eval=None) -> Tensor:
+                    on_eval=None, reduce_grad=None) -> Tensor:
     """Minimize ``loss_fn(z)`` over ``z = log θ`` from ``z0`` by L-BFGS or Adam; ``steps`` loss evaluations
-    (L-BFGS may finish its line search past it); ``on_eval(z, out)`` after each evaluation."""
+    (L-BFGS may finish its line search past it); ``on_eval(z, out)`` after each evaluation.
+    ``reduce_grad(g)``: applied to ``z.grad`` after every backward (under torchrun :meth:`_Shard.reduce_grad`,
+    the sum of the ranks' gradients; ``None``: the gradient as it is)."""
     z = z0.detach().clone().requires_grad_()
     if optimizer == "lbfgs":
         opt = torch.optim.LBFGS([z], lr=lr, max_iter=steps, max_eval=steps, tolerance_grad=tol,
@@ -533,6 +560,8 @@ def _fit_log_params(loss_fn, z0: Tensor, steps: int, lr: float, tol: float, opti
                 loss.backward()
             else:  # nothing included: a zero gradient, never a missing one
                 z.grad = torch.zeros_like(z)
+        if reduce_grad is not None:
+            z.grad = reduce_grad(z.grad)
         if on_eval is not None:
             on_eval(z.detach().clone(), res)
         return loss.detach()
@@ -776,9 +805,15 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
         ``n_excluded``, ``n_nonfinite``, ``unconverged_samples`` — indices — and ``unconverged_reasons``),
         ``evaluations``, ``final_loss``, ``realizable``, ``expert_damping``, ``u_limit``, ``n_test``,
         ``time_learn_s`` (data, learning and held-out evaluation) and ``time_s`` (baselines included),
-        ``nonfinite_values`` (the paths of values that were NaN/inf, written as ``None``: strict JSON).
+        ``nonfinite_values`` (the paths of values that were NaN/inf, written as ``None``: strict JSON);
+        under torchrun also ``world_size`` (the same record on every rank; module docstring).
+
+    Raises:
+        ValueError, TypeError: a bad argument (naming it); ValueError under torchrun with fewer training demos
+            than ranks.
     """
     setup, lr = _validated_learn_args(dict(locals()), "learn_dynamics")
+    shard = _Shard(n_train, "learn_dynamics") if _dist.world_size() > 1 else None
     t_start = time.perf_counter()
     gen = torch.Generator().manual_seed(seed)
     x_test = setup.sample_starts(n_test, gen)
@@ -787,8 +822,8 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
                          options=EXPERT_OPTIONS)
     u_train, u_test = demos.u[:n_train], demos.u[n_train:]
     names, truth = setup.param_names, dict(setup.true_params)
-    hist = _History(system, names, truth)
-    solve = _training_solver(setup, x_train, u_train, unconverged, warm_start, options)
+    hist = _History(system, names, truth, shard)
+    solve = _training_solver(setup, x_train, u_train, unconverged, warm_start, options, shard)
     z0 = torch.tensor([setup.init_params[k] for k in names], dtype=setup.dtype, device=setup.device).log()
     z = _fit_params(setup, solve, z0, u_train, hist, optimizer=optimizer, steps=steps, warmup=warmup, lr=lr,
                     tol=tol, max_step=max_step)
@@ -797,8 +832,15 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
     mse, held_unconv = _heldout_mse(setup, learned, x_test, u_test)
     mse0, _ = _heldout_mse(setup, dict(setup.init_params), x_test, u_test)
     t_learn = time.perf_counter() - t_start
-    base = _run_baselines(setup, baselines, demos.select(list(range(n_train))), x_train, u_train, x_test,
-                          u_test, truth, hist.ident, bc_epochs, seed)
+
+    def run_baselines():
+        return _run_baselines(setup, baselines, demos.select(list(range(n_train))), x_train, u_train, x_test,
+                              u_test, truth, hist.ident, bc_epochs, seed)
+
+    if shard is None:
+        base, t_all = run_baselines(), time.perf_counter() - t_start
+    else:
+        base, t_learn, t_all = shard.from_rank0(run_baselines, t_learn, t_start)
     rec = {"system": system, "n_train": n_train, "seed": seed, "param_rel_err": err,
            "identifiable": hist.ident, "identifiable_rel_err_max": _max(err[k] for k in hist.ident),
            "params": learned, "params_true": _params_true(setup), "params_init": dict(setup.init_params),
@@ -807,7 +849,9 @@ def learn_dynamics(system: str, n_train: int = 10, seed: int = 0, *, steps: int 
            "baselines": base, "unconverged": hist.summary(unconverged),
            "expert_unconverged": int((~demos.frames["converged"]).sum()), "heldout_unconverged": held_unconv,
            "evaluations": len(hist.h["loss"]), "final_loss": hist.h["loss"][-1], "history": hist.h,
-           "time_s": time.perf_counter() - t_start, "time_learn_s": t_learn}
+           "time_s": t_all, "time_learn_s": t_learn}
+    if shard is not None:
+        rec["world_size"] = shard.w
     found: list[str] = []
     rec = _strict_json(rec, "", found)
     rec["nonfinite_values"] = found
@@ -828,14 +872,78 @@ def _validated_learn_args(a: dict[str, Any], own: str) -> tuple[ImitationSetup, 
     return setup, _positive_float(lr, "lr", own)
 
 
+class _Shard:
+    """This rank's block of the training demos under torchrun and the collectives of :func:`learn_dynamics`
+    (:mod:`learning.distributed`; built only when the world has more than one rank)."""
+
+    def __init__(self, n: int, own: str):
+        self.n, self.w, self.own = n, _dist.world_size(), own
+        if n < self.w:
+            raise ValueError(f"{own}: {n} training demos cannot be shared by {self.w} ranks (at least one "
+                             f"each; use n_train >= {self.w} or fewer processes)")
+        self.block = _dist.shard(n)
+
+    def loss(self, run, worst: float, like: Tensor) -> ImitationLoss:
+        """``res`` of ``(res, total, count) = run()`` (:func:`_imitation` on this rank's block) with the
+        global loss: one all-reduce of ``[total, count, failed]`` (``total``: the sum of included errors plus
+        the worst error per non-finite sample, differentiable).  Its value is ``Σ total / Σ count`` (the
+        worst error when ``Σ count = 0``), as one process computes it, the same number on every rank; its
+        gradient is this rank's share ``∇total / Σ count`` (a straight-through sum
+        ``value + (share − share.detach())``), which :meth:`reduce_grad` sums over the ranks.  When
+        ``run()`` raised on any rank every rank raises (:func:`learning.distributed.raise_together`), so that
+        none waits in a collective.  ``like``: a tensor of the setup's dtype and device."""
+        try:
+            (res, total, count), error = run(), None
+        except Exception as e:
+            res, total, count, error = None, like.new_zeros(()), like.new_zeros(()), e
+        failed = like.new_tensor(float(error is not None))
+        g = _dist.all_reduce_sum(torch.stack([total.detach(), count, failed]))
+        if bool(g[2] > 0):
+            _dist.raise_together(error, self.own)
+        value = torch.where(g[1] > 0, g[0] / g[1].clamp(min=1), worst)
+        share = torch.where(g[1] > 0, total / g[1].clamp(min=1), 0.0)
+        return replace(res, loss=value + (share - share.detach()))
+
+    def reduce_grad(self, grad: Tensor) -> Tensor:
+        """The sum over the ranks of the gradient of ``log θ`` (a plain tensor, not an ``nn.Module``: this
+        explicit all-reduce after each backward is what DistributedDataParallel does to a module's
+        gradients, as a sum since :meth:`loss` already divides by the global count)."""
+        return _dist.all_reduce_sum(grad)
+
+    def gather(self, t: Tensor) -> Tensor:
+        """Every rank's block of a per-sample ``t (n_r, ...)`` in sample order: ``(n, ...)``."""
+        return _dist.gather_along(t, self.n)
+
+    def from_rank0(self, baselines, t_learn: float, t_start: float) -> tuple[dict[str, Any], float, float]:
+        """``(baselines(), time_learn_s, time_s)`` on every rank, so that every rank returns the same record:
+        the baselines run on rank 0 only (an exception there is raised on every rank), the times are the
+        slowest rank's."""
+        base, error = None, None
+        if _dist.is_main():
+            try:
+                base = baselines()
+            except Exception as e:
+                error = e
+        _dist.raise_together(error, f"{self.own} (baselines)")
+        parts = _dist.gather_objects((base, t_learn, time.perf_counter() - t_start))
+        return parts[0][0], max(p[1] for p in parts), max(p[2] for p in parts)
+
+
 def _training_solver(setup: ImitationSetup, x_train: Tensor, u_train: Tensor, unconverged: str,
-                     warm_start: str, options: ILQROptions | None):
-    """``solve(params) -> ImitationLoss`` on the training demos, warm-started as ``warm_start`` says."""
+                     warm_start: str, options: ILQROptions | None, shard: _Shard | None = None):
+    """``solve(params) -> ImitationLoss`` on the training demos, warm-started as ``warm_start`` says.  Under
+    torchrun (``shard``) on this rank's block only, with the global loss (:meth:`_Shard.loss`); the other
+    fields are the block's, and each rank keeps the warm starts of its own block."""
+    if shard is not None:
+        x_train, u_train = x_train[shard.block], u_train[shard.block]
     warm = {"u": u_train if warm_start == "expert" else None}
 
     def solve(params):
-        res = imitation_loss(setup, params, x_train, u_train, u_init=warm["u"], unconverged=unconverged,
-                             options=options)
+        def run():
+            return _imitation(setup, params, x_train, u_train, u_init=warm["u"], unconverged=unconverged,
+                              options=options)
+
+        res = run()[0] if shard is None else shard.loss(run, (2.0 * setup.u_limit) ** 2, x_train)
         if warm_start == "previous":
             u = res.solution.u.detach()
             warm["u"] = torch.where(torch.isfinite(u), u, torch.zeros((), dtype=u.dtype, device=u.device))
@@ -899,16 +1007,21 @@ def _check_learn_args(own, system, n_train, n_test, steps, seed, optimizer, warm
 class _History:
     """The per-evaluation history of :func:`learn_dynamics` (every learner solve, trial points included)."""
 
-    def __init__(self, system: str, names, truth):
-        self.system, self.names, self.truth = system, names, truth
+    def __init__(self, system: str, names, truth, shard: _Shard | None = None):
+        self.system, self.names, self.truth, self.shard = system, names, truth, shard
         self.ident = _identifiable_names(system)
         self.h: dict[str, Any] = {"loss": [], "accepted": [], "identifiable_rel_err_max": [],
                                   "params": {k: [] for k in names}, "n_unconverged": [], "n_excluded": [],
                                   "n_nonfinite": [], "unconverged_samples": [], "unconverged_reasons": []}
 
     def record(self, z: Tensor, loss: float, res: ImitationLoss, accepted: bool) -> None:
+        """One evaluation; under torchrun the per-sample fields of every rank's block are gathered first, so
+        that the indices are global and every rank records the same."""
         h, st = self.h, res.solution.status
-        bad = torch.nonzero(~st.converged).flatten().tolist()
+        conv, reason, included, per = st.converged, st.reason, res.included, res.per_sample
+        if self.shard is not None:
+            conv, reason, included, per = (self.shard.gather(t) for t in (conv, reason, included, per))
+        bad = torch.nonzero(~conv).flatten().tolist()
         p = dict(zip(self.names, z.exp().tolist()))
         err = _rel_err(self.system, p, self.truth)
         h["loss"].append(float(loss))
@@ -917,10 +1030,10 @@ class _History:
         for k in self.names:
             h["params"][k].append(p[k])
         h["n_unconverged"].append(len(bad))
-        h["n_excluded"].append(int((~res.included).sum()))
-        h["n_nonfinite"].append(int((~torch.isfinite(res.per_sample)).sum()))
+        h["n_excluded"].append(int((~included).sum()))
+        h["n_nonfinite"].append(int((~torch.isfinite(per)).sum()))
         h["unconverged_samples"].append(bad)
-        h["unconverged_reasons"].append([Reason(int(st.reason[i])).name for i in bad])
+        h["unconverged_reasons"].append([Reason(int(reason[i])).name for i in bad])
 
     def summary(self, policy: str) -> dict[str, Any]:
         """Totals over all evaluations: unconverged / excluded / non-finite sample solves and the reasons."""
@@ -935,8 +1048,9 @@ class _History:
 
 def _fit_params(setup: ImitationSetup, solve, z0: Tensor, u_train: Tensor, hist: _History, *, optimizer: str,
                 steps: int, warmup: int, lr: float, tol: float, max_step: float) -> Tensor:
-    """The learner's ``log θ`` after ``steps`` loss evaluations by ``optimizer`` (:func:`learn_dynamics`)."""
-    scale = setup.u_limit ** 2
+    """The learner's ``log θ`` after ``steps`` loss evaluations by ``optimizer`` (:func:`learn_dynamics`);
+    under torchrun (``hist.shard``) ``solve`` works on this rank's block of ``u_train``."""
+    scale, shard = setup.u_limit ** 2, hist.shard
 
     def loss_fn(z):
         res = solve(dict(zip(setup.param_names, z.exp())))
@@ -944,42 +1058,48 @@ def _fit_params(setup: ImitationSetup, solve, z0: Tensor, u_train: Tensor, hist:
 
     def first_order(z, budget, method):
         return _fit_log_params(loss_fn, z, budget, lr, tol, method,
-                               lambda z, out: hist.record(z, float(out[0].detach()) * scale, out[1], True))
+                               lambda z, out: hist.record(z, float(out[0].detach()) * scale, out[1], True),
+                               None if shard is None else shard.reduce_grad)
 
     if optimizer == "lbfgs+gauss_newton":
         z0 = first_order(z0, min(warmup, steps), "lbfgs")
     if optimizer in ("gauss_newton", "lbfgs+gauss_newton") and len(hist.h["loss"]) < steps:
         left = steps - len(hist.h["loss"])
-        return _levenberg_marquardt(_gauss_newton_model(setup, solve, u_train), z0, left, tol,
+        u_own = u_train if shard is None else u_train[shard.block]
+        return _levenberg_marquardt(_gauss_newton_model(setup, solve, u_own, shard), z0, left, tol,
                                     max_step=max_step, on_eval=hist.record)
     if optimizer in ("lbfgs", "adam"):
         return first_order(z0, steps, optimizer)
     return z0
 
 
-def _gauss_newton_model(setup: ImitationSetup, solve, u_train: Tensor):
+def _gauss_newton_model(setup: ImitationSetup, solve, u_train: Tensor, shard: _Shard | None = None):
     """``evaluate(z) -> (loss, r, jac, res)`` for :func:`_levenberg_marquardt`: the weighted residuals
     ``u − u*`` of the included samples and their Jacobian ``dr/d log θ`` by ``T·m`` implicit backward passes
-    (one copy of ``θ`` per sample, so one pass gives every sample's row)."""
+    (one copy of ``θ`` per sample, so one pass gives every sample's row).  Under torchrun (``shard``;
+    ``solve`` and ``u_train`` are this rank's block) the inclusion flags, the residuals and the Jacobian rows
+    of every rank are gathered in sample order, so that every rank holds the whole ``r`` and ``J`` and
+    forms the same normal equations ``JᵀJ d = −Jᵀr`` (then the same step) as one process."""
     names, N, Tm = setup.param_names, u_train.shape[0], setup.horizon
     P, dtype = len(names), u_train.dtype
+    gather = (lambda t: t) if shard is None else shard.gather
 
     def evaluate(z):
         zz = z.expand(N, P).clone().requires_grad_()
         with torch.enable_grad():
             res = solve(dict(zip(names, zz.exp().unbind(-1))))
         inc = res.included
-        w = inc.to(dtype) / math.sqrt(max(int(inc.sum()), 1) * Tm)
+        w = inc.to(dtype) / math.sqrt(max(int(gather(inc).sum()), 1) * Tm)
         u = res.solution.u.reshape(N, Tm)
         diff = torch.where(inc[:, None], u.detach() - u_train.reshape(N, Tm), 0.0)
-        r = (diff * w[:, None]).reshape(-1)
+        r = gather(diff * w[:, None]).reshape(-1)
 
         def jac():
             if not u.requires_grad:
-                return torch.zeros(N * Tm, P, dtype=dtype, device=z.device)
+                return gather(torch.zeros(N, Tm, P, dtype=dtype, device=z.device)).reshape(-1, P)
             cols = [torch.autograd.grad(u[:, t], zz, w, retain_graph=t < Tm - 1)[0] for t in range(Tm)]
             J = torch.where(inc[:, None, None], torch.stack(cols, 1), 0.0)  # excluded rows: 0, never NaN
-            return J.reshape(N * Tm, P)
+            return gather(J).reshape(-1, P)
 
         return float(res.loss.detach()), r, jac, res
 
