@@ -14,8 +14,8 @@ import os
 from pathlib import Path
 
 __all__ = ["HelpFormatter", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "seed",
-           "thread_count", "int_at_most", "OptionError", "out_dir", "out_file", "existing_file",
-           "existing_dir", "task_name", "KNOWN_VERSION", "SEED_MAX", "THREADS_MAX"]
+           "thread_count", "int_at_most", "float_at_most", "OptionError", "out_dir", "out_file",
+           "existing_file", "existing_dir", "task_name", "KNOWN_VERSION", "SEED_MAX", "THREADS_MAX"]
 
 #: the only registered version of the ``liecontrol/<Name>-vN`` environment ids
 KNOWN_VERSION = 0
@@ -81,6 +81,17 @@ def thread_count(s: str) -> int:
     if v > THREADS_MAX:
         raise argparse.ArgumentTypeError(f"expected at most {THREADS_MAX} threads, got {s}")
     return v
+
+
+def float_at_most(hi: float):
+    """A finite number in ``[0, hi]``."""
+    def check(s: str) -> float:
+        v = nonnegative_float(s)
+        if v > hi:
+            raise argparse.ArgumentTypeError(f"expected a number between 0 and {hi:g}, got {s}")
+        return v
+    check.__name__ = "number"
+    return check
 
 
 def int_at_most(hi: int):

@@ -26,6 +26,7 @@ from pathlib import Path
 from liecontrol._args import (
     existing_dir,
     existing_file,
+    float_at_most,
     int_at_most,
     nonnegative_float,
     nonnegative_int,
@@ -504,26 +505,15 @@ LEARN_WARP_MAX = 50.0
 LEARN_NOISE_MAX = 1e3
 
 
-def _float_at_most(hi: float):
-    """A finite number in ``[0, hi]`` (an argparse type)."""
-    def check(s: str) -> float:
-        v = nonnegative_float(s)
-        if v > hi:
-            raise argparse.ArgumentTypeError(f"expected a number between 0 and {hi:g}, got {s}")
-        return v
-    check.__name__ = "number"
-    return check
-
-
 def learn_costs(p: argparse.ArgumentParser) -> None:
     p.add_argument("--n-demos", type=positive_int, default=8, metavar="N",
                    help="expert demonstrations (random starts), at least 2")
     p.add_argument("--steps", type=positive_int, default=80, metavar="N",
                    help="L-BFGS iterations of fit_cost")
-    p.add_argument("--warp", type=_float_at_most(LEARN_WARP_MAX), default=0.1,
+    p.add_argument("--warp", type=float_at_most(LEARN_WARP_MAX), default=0.1,
                    help="time-warp strength of the minimal-intervention demos (local speed factors about "
                         f"e^±warp), 0 ... {LEARN_WARP_MAX}")
-    p.add_argument("--noise", type=_float_at_most(LEARN_NOISE_MAX), default=0.02,
+    p.add_argument("--noise", type=float_at_most(LEARN_NOISE_MAX), default=0.02,
                    help="spatial noise (std of the position offsets) of the "
                         f"minimal-intervention demos, 0 ... {LEARN_NOISE_MAX:g}")
     p.add_argument("--seed", type=seed, default=0, metavar="S", help="seed of the starts and the variability")
