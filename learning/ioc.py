@@ -68,26 +68,13 @@ from controllers.costs import QuadraticCost
 from controllers.dynamics import LinearDynamics
 from controllers.problem import LQProblem, Reason, SolverStatus
 from learning import distributed as _dist
+from learning._checks import FLOAT_DTYPES, float_tensor
 from learning.demos import Demonstrations
 
 __all__ = ["SPDWeight", "time_weights", "ViaPoints", "LQTCostModel", "normalize_scale", "IOCLoss", "ioc_loss",
            "IOCResult", "fit_cost", "MinimalIntervention", "minimal_intervention"]
 
-_DTYPES = (torch.float32, torch.float64)
 _SOLVERS = ("riccati", "lifted", "ilqr")
-
-
-def _float_tensor(v: Any, name: str, own: str, like: Tensor | None = None, finite: bool = True) -> Tensor:
-    if not isinstance(v, Tensor):
-        raise TypeError(f"{own}: argument '{name}' must be a floating tensor, got {type(v).__name__}")
-    if v.dtype not in _DTYPES:
-        raise TypeError(f"{own}: argument '{name}' must be float32 or float64, got {v.dtype}")
-    if like is not None and (v.dtype != like.dtype or v.device != like.device):
-        raise TypeError(f"{own}: argument '{name}' has dtype {v.dtype} on {v.device}, expected {like.dtype} "
-                        f"on {like.device}")
-    if finite and not bool(torch.isfinite(v).all()):
-        raise ValueError(f"{own}: argument '{name}' has non-finite entries")
-    return v
 
 
 def _pos_int(v: Any, name: str, own: str, least: int = 1) -> int:
@@ -137,7 +124,7 @@ class SPDWeight(nn.Module):
         own = "SPDWeight"
         if kind not in ("diagonal", "full"):
             raise ValueError(f"{own}: argument 'kind' must be 'diagonal' or 'full', got {kind!r}")
-        init = _float_tensor(init, "init", own).detach()
+        init = float_tensor(init, "init", own, finite=True).detach()
         if kind == "diagonal":
             if init.dim() < 1 or init.shape[-1] < 1:
                 raise ValueError(f"{own}: kind='diagonal' needs the diagonal entries 'init' (*S, k), got "
@@ -236,7 +223,7 @@ def time_weights(tau: Tensor, T: int, kernel: str = "gaussian", width: float = 1
     follow it.
     """
     own = "time_weights"
-    if not isinstance(tau, Tensor) or tau.dtype not in _DTYPES:
+    if not isinstance(tau, Tensor) or tau.dtype not in FLOAT_DTYPES:
         raise TypeError(f"{own}: argument 'tau' must be a float32/float64 tensor (*K,)")
     T = _pos_int(T, "T", own)
     if kernel not in ("gaussian", "linear"):
@@ -266,11 +253,11 @@ class ViaPoints(nn.Module):
                  learn_times: bool = True):
         super().__init__()
         own = "ViaPoints"
-        targets = _float_tensor(targets, "targets", own).detach()
+        targets = float_tensor(targets, "targets", own, finite=True).detach()
         if targets.dim() != 2:
             raise ValueError(f"{own}: argument 'targets' must be (K, n), got {tuple(targets.shape)}")
         K, n = targets.shape
-        times = _float_tensor(times, "times", own, like=targets).detach()
+        times = float_tensor(times, "times", own, like=targets, finite=True).detach()
         if times.shape != (K,):
             raise ValueError(f"{own}: argument 'times' must be ({K},) for {K} via points, got "
                              f"{tuple(times.shape)}")
@@ -284,7 +271,7 @@ class ViaPoints(nn.Module):
                                  f"{tuple(P.shape)}")
             self.precision = precision
         else:
-            P = _float_tensor(precision, "precision", own, like=targets)
+            P = float_tensor(precision, "precision", own, like=targets, finite=True)
             if P.shape[-2:] != (n, n) or P.dim() not in (2, 3) or (P.dim() == 3 and P.shape[0] != K):
                 raise ValueError(f"{own}: argument 'precision' must be ({K}, {n}, {n}) or ({n}, {n}), got "
                                  f"{tuple(P.shape)}")
@@ -347,7 +334,7 @@ class LQTCostModel(nn.Module):
         terminal_factor = _pos_float(terminal_factor, "terminal_factor", own)
         Qm, Rm = _weight_matrix(Q), _weight_matrix(R)
         for name, M in (("Q", Qm), ("R", Rm)):
-            _float_tensor(M, name, own)
+            float_tensor(M, name, own, finite=True)
             if M.dim() not in (2, 3) or M.shape[-1] != M.shape[-2]:
                 raise ValueError(f"{own}: argument '{name}' must be a square (k, k) or per-step (S, k, k) "
                                  f"weight, got {tuple(M.shape)}")
@@ -369,7 +356,7 @@ class LQTCostModel(nn.Module):
                 self.register_buffer(name, W.detach().clone())
         if target is None:
             target = torch.zeros(n, **kw)
-        target = _float_tensor(target, "target", own, like=Qm).detach()
+        target = float_tensor(target, "target", own, like=Qm, finite=True).detach()
         if target.shape != (n,):
             raise ValueError(f"{own}: argument 'target' must be ({n},), got {tuple(target.shape)}")
         if learn_target:
@@ -514,12 +501,12 @@ def _demo_tensors(demos: Demonstrations | Tensor, u_demo: Tensor | None, own: st
         if u_demo is not None:
             raise ValueError(f"{own}: pass the controls inside the Demonstrations, not as 'u_demo'")
         return demos.x, demos.u
-    x = _float_tensor(demos, "demos", own, finite=False)  # a non-finite demo is reported per demo
+    x = float_tensor(demos, "demos", own)  # a non-finite demo is reported per demo
     if x.dim() < 2 or x.shape[-2] < 2:
         raise ValueError(f"{own}: argument 'demos' must be a Demonstrations or states (*B, T+1, n) with "
                          f"T >= 1, got {tuple(x.shape)}")
     if u_demo is not None:
-        u_demo = _float_tensor(u_demo, "u_demo", own, like=x, finite=False)
+        u_demo = float_tensor(u_demo, "u_demo", own, like=x)
         if u_demo.dim() < 2 or u_demo.shape[-2] != x.shape[-2] - 1:
             raise ValueError(f"{own}: argument 'u_demo' must be (*B, {x.shape[-2] - 1}, m), got "
                              f"{tuple(u_demo.shape)}")

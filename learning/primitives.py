@@ -50,12 +50,12 @@ from controllers.lifted import control_primitives, solve_lifted, transfer_matric
 from controllers.lqt_cookbook import DMPLQT, dmp_lqt, dmp_rollout, double_integrator
 from controllers.problem import LQProblem, SolverStatus
 from controllers.riccati import solve as riccati_solve
+from learning._checks import float_tensor
 from learning.demos import Demonstrations
 
 __all__ = ["DMP", "fit_dmp", "Reproduction", "ProMP", "fit_promp", "Tracking", "integrator_chain",
            "reproduction_error", "via_point_error", "perturbation_recovery", "Recovery"]
 
-_DTYPES = (torch.float32, torch.float64)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -65,21 +65,7 @@ _DTYPES = (torch.float32, torch.float64)
 
 def _tensor(v: Any, name: str, own: str, like: Tensor | None = None, min_dim: int = 1) -> Tensor:
     """``v`` as a floating tensor (numpy arrays are converted; ``like`` fixes dtype/device of plain data)."""
-    if isinstance(v, np.ndarray):
-        v = torch.from_numpy(np.array(v, dtype=np.float64 if v.dtype.kind != "f" else v.dtype))
-        if like is not None:
-            v = v.to(dtype=like.dtype, device=like.device)
-    if not isinstance(v, Tensor):
-        raise TypeError(f"{own}: argument '{name}' must be a tensor, got {type(v).__name__}")
-    if v.dtype not in _DTYPES:
-        raise TypeError(f"{own}: argument '{name}' must be float32 or float64, got {v.dtype}")
-    if like is not None and (v.dtype != like.dtype or v.device != like.device):
-        raise TypeError(f"{own}: argument '{name}' has dtype {v.dtype} on {v.device}, expected {like.dtype} "
-                        f"on {like.device} (the model's)")
-    if v.dim() < min_dim:
-        raise ValueError(f"{own}: argument '{name}' must have at least {min_dim} dim(s), got "
-                         f"{tuple(v.shape)}")
-    return v
+    return float_tensor(v, name, own, like, min_dim=min_dim, numpy=True, whose="the model's")
 
 
 def _pos_int(v: Any, name: str, own: str, least: int = 1) -> int:
