@@ -64,6 +64,7 @@ from learning.primitives import (
     via_point_error,
 )
 from learning.registration import env_id, register_envs
+from learning.robustness import perturbed_task, robustness_study
 from learning.vector import TaskVectorEnv
 
 __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "CartPoleSwingUp",
@@ -76,4 +77,4 @@ __all__ = ["Task", "TASKS", "TaskEnv", "TaskVectorEnv", "PendulumSwingUp", "Cart
            "IOCResult", "fit_cost", "MinimalIntervention", "minimal_intervention", "orientation_demos",
            "stiffness_demos", "manifold_statistics", "ManifoldStatistics", "BodyRateSO3", "track_mean",
            "MeanTrackingRun", "learn_dynamics", "imitation_study", "imitation_setup", "imitation_loss",
-           "identifiable_combinations", "distributed"]
+           "identifiable_combinations", "distributed", "perturbed_task", "robustness_study"]

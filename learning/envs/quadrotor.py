@@ -25,6 +25,11 @@ index, by the task (observation, reward) and by its expert alike.  State
   ``velocity_limit`` in any axis, or the vehicle upside down (``R₃₃ < 0``); these make the observation
   bounds finite.
 * Success at the end of the episode: ``‖e_p‖ < 0.1`` m and ``‖e_v‖ < 0.3`` m/s; error ``‖e_p‖`` (m).
+* Model mismatch (for studies of robustness): ``mass_scale`` ``s`` and ``drag`` ``(d_x, d_y, d_z)`` make the
+  vehicle's model :class:`~controllers.systems.Quadrotor` ``(mass_scale=s, drag=D)``: the thrust produces
+  ``a_T / s`` and rotor drag ``−R D Rᵀ v`` acts (defaults: 1 and zeros, the nominal vehicle).  The reference
+  path is the same; its tabulated controls are the flatness controls of the drag-free model with the thrust
+  times ``s`` (exact without drag).
 * Initial state: a uniform integer phase, the reference's position and velocity plus uniform offsets
   (``±start_position`` m, ``±start_velocity`` m/s per axis) and a level attitude tilted by a rotation
   vector uniform in ``±start_tilt`` rad per axis.
@@ -104,6 +109,8 @@ class QuadrotorTrack(Task):
         period_steps: control steps per lap (the lap time is ``period_steps · dt``).
         dt: control period (s).
         rate_max: body-rate limit (rad/s).
+        mass_scale: true mass / nominal mass of the vehicle (the thrust produces ``a_T / mass_scale``).
+        drag: rotor-drag coefficients per unit mass ``(d_x, d_y, d_z)`` (1/s, body axes).
     """
 
     name: ClassVar[str] = "QuadrotorCircle"
@@ -123,6 +130,8 @@ class QuadrotorTrack(Task):
     velocity_limit: float = 4.0
     gravity: float = 9.81
     max_episode_steps: int = 250
+    mass_scale: float = 1.0
+    drag: tuple = (0.0, 0.0, 0.0)
     _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self):
@@ -136,17 +145,32 @@ class QuadrotorTrack(Task):
             if not float(getattr(self, name)) > 0:
                 raise ValueError(f"QuadrotorTrack: argument '{name}' must be positive, "
                                  f"got {getattr(self, name)!r}")
+        self._check_mismatch()
         if not (self.start_position < self.position_limit and self.start_velocity < self.velocity_limit):
             raise ValueError("QuadrotorTrack: the start offsets must lie inside the crash limits")
         g = float(self.gravity)
-        quad = Quadrotor(dt=self.dt, gravity=g, thrust_min=0.0, thrust_max=2 * g, rate_max=self.rate_max)
+        quad = Quadrotor(dt=self.dt, gravity=g, thrust_min=0.0, thrust_max=2 * g, rate_max=self.rate_max,
+                         mass_scale=float(self.mass_scale), drag=tuple(float(d) for d in self.drag))
         object.__setattr__(self, "_system", QuadrotorClock(quad, self.period_steps))
         ref = self._reference_f64()
-        if not (ref.thrust.max() < 2 * g and ref.thrust.min() > 0 and ref.omega.abs().max() < self.rate_max):
-            raise ValueError(f"QuadrotorTrack: the reference needs thrust {ref.thrust.min():.3g}…"
-                             f"{ref.thrust.max():.3g} m/s² and rates up to {ref.omega.abs().max():.3g} "
+        s = float(self.mass_scale)
+        if not (s * ref.thrust.max() < 2 * g and ref.thrust.min() > 0
+                and ref.omega.abs().max() < self.rate_max):
+            raise ValueError(f"QuadrotorTrack: the reference needs thrust {s * ref.thrust.min():.3g}…"
+                             f"{s * ref.thrust.max():.3g} m/s² and rates up to {ref.omega.abs().max():.3g} "
                              f"rad/s, beyond the limits (0…{2 * g:.3g}, {self.rate_max}); slow it down "
                              "(a larger period_steps)")
+
+    def _check_mismatch(self) -> None:
+        s = self.mass_scale
+        if not (isinstance(s, (int, float)) and 0 < float(s) < math.inf):
+            raise ValueError(f"QuadrotorTrack: argument 'mass_scale' must be a positive finite number, "
+                             f"got {s!r}")
+        d = self.drag
+        if not (isinstance(d, (tuple, list)) and len(d) == 3
+                and all(isinstance(c, (int, float)) and 0 <= float(c) < math.inf for c in d)):
+            raise ValueError("QuadrotorTrack: argument 'drag' must be a tuple of three finite non-negative "
+                             f"coefficients (d_x, d_y, d_z) in 1/s, got {d!r}")
 
     # -- the reference ------------------------------------------------------------------------------------
     @property
@@ -171,12 +195,16 @@ class QuadrotorTrack(Task):
         return self._cache["f64"]
 
     def reference(self, dtype=torch.float64, device=None) -> dict[str, Tensor]:
-        """The tabulated lap, ``P`` samples: ``p, v (P, 3)``, ``R (P, 3, 3)``, ``u (P, 4)`` (``[a_T, ω]``)."""
+        """The tabulated lap, ``P`` samples: ``p, v (P, 3)``, ``R (P, 3, 3)``, ``u (P, 4)`` (``[a_T, ω]``; the
+        thrust times ``mass_scale``, see the module docstring)."""
         key = (dtype, torch.device(device) if device is not None else torch.device("cpu"))
         if key not in self._cache:
             ref = self._reference_f64()
+            u = ref.u
+            if float(self.mass_scale) != 1.0:
+                u = torch.cat([u[..., :1] * float(self.mass_scale), u[..., 1:]], -1)
             self._cache[key] = {k: v.to(dtype=dtype, device=key[1])
-                                for k, v in (("p", ref.p), ("v", ref.v), ("R", ref.R), ("u", ref.u))}
+                                for k, v in (("p", ref.p), ("v", ref.v), ("R", ref.R), ("u", u))}
         return self._cache[key]
 
     def phase_index(self, x: Tensor) -> Tensor:
@@ -199,7 +227,8 @@ class QuadrotorTrack(Task):
     def obs_high(self) -> np.ndarray:
         # A step starts inside the limits (|e_p,i| ≤ L_p, |e_v,i| ≤ L_v; else the episode has ended, and the
         # initial states are inside), so |v_i| ≤ L_v + V with V = max |v_ref,i|.  One Euler step gives
-        # e_p⁺ = e_p + dt v − Δp_ref and e_v⁺ = e_v + dt (g e₃ − a_T R e₃) − Δv_ref, |a_T R e₃|_i ≤ 2g.
+        # e_p⁺ = e_p + dt v − Δp_ref and e_v⁺ = e_v + dt (g e₃ − (a_T/s) R e₃ − R D Rᵀ v) − Δv_ref, with
+        # |(a_T/s) R e₃|_i ≤ 2g/s and |R D Rᵀ v|_i ≤ ‖R D Rᵀ v‖ ≤ d_max ‖v‖ ≤ d_max √3 (L_v + V).
         ref = self._reference_f64()
         nxt = torch.roll(torch.arange(self.period_steps), -1)
         dp = float((ref.p[nxt] - ref.p).abs().max())
@@ -207,7 +236,9 @@ class QuadrotorTrack(Task):
         V = float(ref.v.abs().max())
         g, dt = float(self.gravity), self.dt
         ep = self.position_limit + dt * (self.velocity_limit + V) + dp
-        ev = self.velocity_limit + dt * 3 * g + dv
+        s, dmax = float(self.mass_scale), max(float(d) for d in self.drag)
+        drag = dt * math.sqrt(3.0) * dmax * (self.velocity_limit + V)
+        ev = self.velocity_limit + dt * (1 + 2 / s) * g + drag + dv
         return np.array([ep] * 3 + [ev] * 3 + [1.0] * 11) * (1.0 + 1e-6)
 
     def initial_state(self, noise: Tensor) -> Tensor:
