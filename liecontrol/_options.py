@@ -564,9 +564,10 @@ def learn_dynamics(p: argparse.ArgumentParser) -> None:
                         "search past it: the JSON's 'evaluations' is the count)")
     p.add_argument("--n-test", type=positive_int, default=50, metavar="N",
                    help="held-out starts of the imitation MSE")
-    p.add_argument("--unconverged", choices=("exclude", "include"), default="exclude",
-                   help="a non-converged training solve: left out of that evaluation's loss, or kept with "
-                        "the implicit gradient at its last iterate (counted either way)")
+    p.add_argument("--unconverged", choices=("include", "exclude"), default="include",
+                   help="a non-converged training solve: kept with the implicit gradient at its last "
+                        "iterate, or left out of that evaluation's loss (counted either way; "
+                        "learning.imitation says why 'include' is the default)")
     _common(p, out="out/learn/dynamics", quiet=True, plots=True)
 
 

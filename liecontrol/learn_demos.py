@@ -400,7 +400,7 @@ def _dynamics_run(rec: dict) -> dict:
 @restores_threads
 def dynamics(system: str = "pendulum", *, n_train: int = 10, seeds: int = 4,
              baselines: tuple[str, ...] = ("sysid", "mlp", "lstm"), steps: int = 100, n_test: int = 50,
-             unconverged: str = "exclude", threads: int = 1, quiet: bool = True, log=None) -> list[dict]:
+             unconverged: str = "include", threads: int = 1, quiet: bool = True, log=None) -> list[dict]:
     """The ``dynamics`` pipeline: :func:`learning.imitation.imitation_study` for seeds ``0 … seeds-1`` (one
     call per seed, for the progress bar); returns the runs (:func:`_dynamics_run`)."""
     from learning.imitation import imitation_study

@@ -107,7 +107,7 @@ def test_dynamics_runs_have_the_documented_keys(tmp_path):
     assert _finite(r["imitation_mse"]) and r["imitation_mse"] < 1e-3 * r["imitation_mse_init"]
     assert set(r["baselines"]) == {"sysid", "mlp"}
     assert all(_finite(b["imitation_mse"]) for b in r["baselines"].values())
-    assert r["expert_unconverged"] == 0 and r["unconverged"]["policy"] == "exclude"
+    assert r["expert_unconverged"] == 0 and r["unconverged"]["policy"] == "include"
     assert r["nonfinite_values"] == []
     assert len(r["history"]["loss"]) == r["evaluations"] <= 40
     assert "err g/l" in report and "identifiable_within_1_percent | yes" in report

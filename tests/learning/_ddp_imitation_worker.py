@@ -31,7 +31,7 @@ RUNS = {
     "pendulum": ("pendulum", dict(steps=10, warmup=5, n_test=1, baselines=("sysid", "mlp"), bc_epochs=5)),
     "cartpole": ("cartpole", dict(steps=6, warmup=3, n_test=1, baselines=())),
     "unconverged": ("pendulum", dict(steps=6, warmup=3, n_test=3, options=ILQROptions(max_iter=2),
-                                     warm_start="previous", baselines=())),
+                                     warm_start="previous", unconverged="exclude", baselines=())),
     "nonfinite": ("pendulum", dict(steps=4, n_test=3, optimizer="adam", lr=50.0, baselines=())),
 }
 

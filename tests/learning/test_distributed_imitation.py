@@ -109,7 +109,7 @@ def test_sharded_loss_and_gradient_equal_one_process(monkeypatch, case):
     def params():
         return dict(zip(setup.param_names, z.exp()))
 
-    one = im.imitation_loss(setup, params(), x0, ue, u_init=u_init, options=opts)
+    one = im.imitation_loss(setup, params(), x0, ue, u_init=u_init, options=opts, unconverged="exclude")
     g_one, = torch.autograd.grad(one.loss, z)
     worst = (2 * setup.u_limit) ** 2
     if case == "mixed":
@@ -120,7 +120,8 @@ def test_sharded_loss_and_gradient_equal_one_process(monkeypatch, case):
         assert not one.included.any()
         expected = torch.tensor(worst, dtype=D64)
     blocks = (slice(0, 3), slice(3, 5))
-    parts = [im._imitation(setup, params(), x0[b], ue[b], u_init=u_init[b], options=opts) for b in blocks]
+    parts = [im._imitation(setup, params(), x0[b], ue[b], u_init=u_init[b], options=opts,
+                           unconverged="exclude") for b in blocks]
     sums = [torch.stack([total.detach(), count, torch.zeros((), dtype=D64)]) for _, total, count in parts]
     losses, grads = [], []
     for r, part in enumerate(parts):

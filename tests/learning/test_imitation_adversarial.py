@@ -1,5 +1,5 @@
 """learning.imitation, adversarial: bad arguments refused by name, dtype never silently changed, a non-finite
-sample never poisons the gradient of the others, unconverged solves excluded by default (as learning.ioc)
+sample never poisons the gradient of the others, unconverged solves included by default (counted) or excluded
 and counted, gradcheck of the imitation loss in float64, batched == per-sample gradients, determinism, and
 strictly JSON-able records whose non-finite values are reported."""
 
@@ -43,16 +43,21 @@ def _params(setup, z):
 # ------------------------------------------------------------------------------------------------ defaults
 
 
-def test_default_unconverged_policy_is_exclude_as_in_ioc(pend):
+def test_exclude_policy_drops_unconverged_samples(pend):
+    """unconverged='exclude' (not the default here: the module docstring says why) leaves non-converged
+    samples out of the mean; the default 'include' keeps them, counted."""
     setup, x0, ue = pend
     u_init = torch.cat([ue[:2], torch.zeros_like(ue[2:])])
-    res = imitation_loss(setup, setup.true_params, x0, ue, u_init=u_init, options=ILQROptions(max_iter=1))
+    kw = dict(u_init=u_init, options=ILQROptions(max_iter=1))
+    res = imitation_loss(setup, setup.true_params, x0, ue, unconverged="exclude", **kw)
     conv = res.solution.status.converged
     assert conv.tolist() == [True, True, False]
     assert res.included.tolist() == conv.tolist()
     assert torch.allclose(res.loss, res.per_sample[conv].mean())
+    inc = imitation_loss(setup, setup.true_params, x0, ue, **kw)  # the default
+    assert inc.included.all() and torch.allclose(inc.loss, inc.per_sample.mean())
     r = learn_dynamics("pendulum", 3, 0, options=ILQROptions(max_iter=1), warm_start="previous",
-                       **dict(FAST, steps=4))
+                       unconverged="exclude", **dict(FAST, steps=4))
     assert r["unconverged"]["policy"] == "exclude"
     h = r["history"]
     assert h["n_excluded"] == h["n_unconverged"]
@@ -64,7 +69,8 @@ def test_default_unconverged_policy_is_exclude_as_in_ioc(pend):
 
 def test_all_excluded_is_never_a_perfect_fit(pend):
     setup, x0, ue = pend
-    res = imitation_loss(setup, setup.true_params, x0, ue, options=ILQROptions(max_iter=1))
+    res = imitation_loss(setup, setup.true_params, x0, ue, options=ILQROptions(max_iter=1),
+                         unconverged="exclude")
     assert not res.solution.status.converged.any() and not res.included.any()
     # no usable sample: the largest error within the limits, not 0
     assert float(res.loss) == pytest.approx((2 * setup.u_limit) ** 2)
