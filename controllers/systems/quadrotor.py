@@ -121,7 +121,9 @@ class Quadrotor:
         mass_scale: true mass / nominal mass ``s`` (the thrust acceleration is ``a_T / s``), a float or a
             tensor ``(*B,)`` broadcasting against the batch; default 1 (no mismatch).
         drag: rotor-drag coefficients per unit mass ``(d_x, d_y, d_z)`` (1/s, body axes; acceleration
-            ``−R D Rᵀ v``), a tuple or a tensor ``(*B, 3)``; default zeros (no drag).
+            ``−R D Rᵀ v``), a tuple or a tensor ``(*B, 3)``; default ``None`` (no drag: every field of the
+            nominal model is then a plain number, which is what lets a compiled error-state MPC bake it
+            into a program, :func:`controllers._esmpc_core.system_key`).
     """
 
     dt: float = 0.01
@@ -131,7 +133,7 @@ class Quadrotor:
     rate_max: float = 15.0
     manifold: ProductManifold = field(default_factory=quadrotor_manifold)
     mass_scale: Tensor | float = 1.0
-    drag: Tensor | tuple[float, float, float] = (0.0, 0.0, 0.0)
+    drag: Tensor | tuple[float, float, float] | None = None
 
     n = 9
     m = 4

@@ -150,7 +150,8 @@ class QuadrotorTrack(Task):
             raise ValueError("QuadrotorTrack: the start offsets must lie inside the crash limits")
         g = float(self.gravity)
         quad = Quadrotor(dt=self.dt, gravity=g, thrust_min=0.0, thrust_max=2 * g, rate_max=self.rate_max,
-                         mass_scale=float(self.mass_scale), drag=tuple(float(d) for d in self.drag))
+                         mass_scale=float(self.mass_scale),
+                         drag=tuple(float(d) for d in self.drag) if any(self.drag) else None)
         object.__setattr__(self, "_system", QuadrotorClock(quad, self.period_steps))
         ref = self._reference_f64()
         s = float(self.mass_scale)
