@@ -43,7 +43,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from learning._policy_io import decode, encode, policy_class, policy_name, register_policy
+from learning._policy_io import POLICIES, decode, encode, policy_class, policy_name, register_policy
 from learning.envs.single import int_arg, make_task
 from learning.envs.task import Task
 
@@ -153,7 +153,10 @@ def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None 
         device: torch device of the networks.
         params: hyperparameters (default :func:`hyperparams`); ``n_envs`` is taken out of them.
         policy, policy_kwargs: SB3's policy (class or name) and its arguments, e.g.
-            :class:`learning.mpc_policy.MPCActorCriticPolicy` with ``{"task": task}``.
+            :class:`learning.mpc_policy.MPCActorCriticPolicy` with ``{"task": task}``; with
+            ``"warm_start": True`` (PPO only) the env is wrapped in
+            :class:`learning.mpc_warmstart.PlanInObservation` and the agent is a
+            :class:`~learning.mpc_warmstart.WarmStartMPCPPO`.
     """
     from stable_baselines3.common.vec_env import VecMonitor
 
@@ -163,10 +166,17 @@ def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None 
     kw = hyperparams(algo, task) if params is None else dict(params)
     n = int(kw.pop("n_envs", 1) if num_envs is None else num_envs)
     kw.pop("n_envs", None)
-    env = VecMonitor(SB3VecEnv(task, n))
+    venv, algo_cls = SB3VecEnv(task, n), _sb3_class(algo)
+    if isinstance(policy, str) and policy in POLICIES:  # a registered name (SB3 knows only its aliases)
+        policy = policy_class(algo_cls, policy)
+    if (policy_kwargs or {}).get("warm_start"):  # the MPC head's plan rides in the observation
+        from learning.mpc_warmstart import warm_start_setup
+
+        venv, algo_cls = warm_start_setup(venv, task, algo, policy, policy_kwargs)
+    env = VecMonitor(venv)
     if policy_kwargs is not None:
         kw["policy_kwargs"] = dict(policy_kwargs)
-    model = _sb3_class(algo)(policy, env, seed=int(seed), device=device,
+    model = algo_cls(policy, env, seed=int(seed), device=device,
                              tensorboard_log=None if tensorboard_log is None else str(tensorboard_log),
                              verbose=0, **kw)
     model.env.seed(train_env_seed(seed))  # SB3 seeded the envs with `seed`; ours are disjoint per seed
@@ -361,7 +371,8 @@ _POLICY_KWARG_TYPES: dict[str, tuple] = {
     "optimizer_class": (type,), "optimizer_kwargs": (dict, None), "ortho_init": (bool,), "use_sde": (bool,),
     "wrap_angles": (bool,),
     "share_features_extractor": (bool,), "log_std_init": _NUM, "log_scale_range": _NUM, "horizon": (int,),
-    "max_iter": (int,), "task": (str,), "grad": (str,), "terminal_factor": (*_NUM, None)}
+    "max_iter": (int,), "task": (str,), "grad": (str,), "terminal_factor": (*_NUM, None),
+    "per_step": (bool,), "warm_start": (bool,), "compile": (bool,)}
 
 
 def _check_types(d: dict, types: dict[str, tuple], where: str) -> None:

@@ -79,7 +79,7 @@ __all__ = ["MPCActorCriticPolicy", "MPCExtractor", "LearnedTaskCost", "make_mpc_
 
 #: planning horizon of the MPC head by task name (shorter than the expert's: every call is a cold solve)
 DEFAULT_MPC_HORIZON = {"PendulumSwingUp": 20, "CartPoleSwingUp": 25, "CarParking": 25, "BicopterHover": 15,
-                       "ArmReach": 20}
+                       "ArmReach": 20, "QuadrotorCircle": 25, "QuadrotorFigureEight": 25}
 #: terminal weight of the MPC head's cost as a multiple of the running one, by task name (else the task's
 #: own terminal weight); measured in :class:`LearnedTaskCost`'s docstring
 DEFAULT_TERMINAL_FACTOR = {"PendulumSwingUp": 1.0}
@@ -343,6 +343,12 @@ class MPCActorCriticPolicy(ActorCriticPolicy):
         warm_start: warm-start each solve from the plan carried in the observation (:class:`MPCExtractor`;
             the environment must be wrapped in :class:`learning.mpc_warmstart.PlanInObservation`, e.g. by
             :func:`learning.mpc_warmstart.make_warm_mpc_ppo`).
+
+    On a :class:`~learning.envs.quadrotor.QuadrotorTrack` task (``QuadrotorCircle``,
+    ``QuadrotorFigureEight``) the head is the error-state MPC on the manifold instead
+    (:class:`learning.mpc_head_quadrotor.ErrorStateMPCExtractor`: the network re-weights the expert's cost
+    and moves its position targets; a QP solved to optimality, so stateless); ``max_iter``,
+    ``ilqr_options``, ``compile``, ``wrap_angles`` and ``terminal_factor`` do not apply there.
     """
 
     def __init__(self, observation_space: spaces.Space, action_space: spaces.Space, lr_schedule, *,
@@ -379,8 +385,19 @@ class MPCActorCriticPolicy(ActorCriticPolicy):
                          log_std_init=log_std_init, **kwargs)
 
     def _build_mlp_extractor(self) -> None:
+        from learning.envs.quadrotor import QuadrotorTrack
+
         arch = self.net_arch
         vf = arch.get("vf", [64, 64]) if isinstance(arch, dict) else list(arch)
+        if isinstance(self.mpc_task, QuadrotorTrack):  # the error-state MPC on the manifold
+            from learning.mpc_head_quadrotor import ErrorStateMPCExtractor
+
+            self.mlp_extractor = ErrorStateMPCExtractor(
+                self.mpc_task, self.features_dim, horizon=self.horizon, grad=self.grad,
+                cost_net_arch=self.cost_net_arch, activation_fn=self.activation_fn,
+                log_scale_range=self.log_scale_range, target_offset=self.target_offset, vf_arch=vf,
+                per_step=self.per_step, warm_start=self.warm_start)
+            return
         self.mlp_extractor = MPCExtractor(
             self.mpc_task, self.features_dim, horizon=self.horizon, max_iter=self.max_iter, grad=self.grad,
             options=self.ilqr_options, compile=self.compile_sweeps, cost_net_arch=self.cost_net_arch,

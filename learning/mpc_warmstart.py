@@ -45,7 +45,7 @@ from learning.envs.single import make_task
 from learning.envs.task import Task
 from learning.mpc_policy import DEFAULT_MPC_HORIZON, MPCActorCriticPolicy
 
-__all__ = ["PlanInObservation", "WarmStartMPCPPO", "make_warm_mpc_ppo"]
+__all__ = ["PlanInObservation", "WarmStartMPCPPO", "make_warm_mpc_ppo", "warm_start_setup"]
 
 
 class PlanInObservation(VecEnvWrapper):
@@ -178,3 +178,17 @@ def make_warm_mpc_ppo(task: Task | str = "CartPoleSwingUp", *, num_envs: int = 8
     env = PlanInObservation(SB3VecEnv(t, num_envs, **(env_kwargs or {})), pk["horizon"], t.m)
     ppo_kwargs.setdefault("device", "cpu")
     return WarmStartMPCPPO(MPCActorCriticPolicy, env, policy_kwargs=pk, **ppo_kwargs)
+
+
+def warm_start_setup(venv: VecEnv, task: Task, algo: str, policy,
+                     policy_kwargs: dict) -> tuple[VecEnv, type]:
+    """``(PlanInObservation(venv), WarmStartMPCPPO)`` for a policy built with ``warm_start=True``
+    (:func:`learning.baselines.make_agent`); a ``ValueError`` for another algorithm or policy."""
+    from learning._policy_io import policy_class
+
+    cls = policy_class(PPO, policy) if isinstance(policy, str) else policy
+    if str(algo).lower() != "ppo" or cls is not MPCActorCriticPolicy:
+        raise ValueError("argument 'policy_kwargs': warm_start=True needs PPO with MPCActorCriticPolicy, "
+                         f"got algo {algo!r}, policy {policy!r}")
+    horizon = policy_kwargs.get("horizon") or DEFAULT_MPC_HORIZON.get(task.name, 20)
+    return PlanInObservation(venv, int(horizon), task.m), WarmStartMPCPPO

@@ -41,7 +41,7 @@ from liecontrol._args import (
 
 __all__ = ["COMMANDS", "GROUPS", "LIE_OPS", "QUADROTOR_SCENARIOS", "UGV_PAPER_HORIZON", "UGV_QUICK_STEPS",
            "UGV_WEIGHTS", "ILQR_PROBLEMS", "ENV_BENCH_TASKS", "ENV_BENCH_IMPLS", "SOLVER_WORKLOADS", "DTYPES",
-           "LEARN_TASKS", "budget_item"]
+           "LEARN_TASKS", "MPC_PPO_TASKS", "budget_item"]
 
 ME2_PAPER = ("Torres Alberto et al., \"A linearization method based on Lie algebra for pose estimation in a "
              "time horizon\" (ARK 2022)")
@@ -441,21 +441,32 @@ def compare(p: argparse.ArgumentParser) -> None:
 LEARN_TASKS = ("PendulumSwingUp", "CartPoleSwingUp", "CarParking", "BicopterHover")
 
 
-def learn_task(value: str) -> str:
-    """:func:`task_name`, restricted to :data:`LEARN_TASKS`."""
+#: the tasks of ``learn mpc-ppo``: those, and the quadrotors (their head is the error-state MPC on the
+#: manifold, :mod:`learning.mpc_head_quadrotor`)
+MPC_PPO_TASKS = (*LEARN_TASKS, "QuadrotorCircle", "QuadrotorFigureEight")
+
+
+def learn_task(value: str, allowed: tuple[str, ...] = LEARN_TASKS) -> str:
+    """:func:`task_name`, restricted to ``allowed`` (default :data:`LEARN_TASKS`)."""
     name = task_name(value)
-    if name not in LEARN_TASKS:
+    if name not in allowed:
         raise argparse.ArgumentTypeError(
-            f"{name} cannot be learnt by these commands (its MPC is not a quadratic cost on the flat state); "
-            f"choose from {', '.join(LEARN_TASKS)}")
+            f"{name} cannot be learnt by this command (its MPC is not a quadratic cost on the flat state); "
+            f"choose from {', '.join(allowed)}")
     return name
+
+
+def mpc_ppo_task(value: str) -> str:
+    """:func:`learn_task` for ``learn mpc-ppo`` (:data:`MPC_PPO_TASKS`)."""
+    return learn_task(value, MPC_PPO_TASKS)
 
 
 _LEARN_TASK_HELP = f"task: {', '.join(LEARN_TASKS)} (a unique prefix in any case, or liecontrol/<task>-v0)"
 
 
 def learn_mpc_ppo(p: argparse.ArgumentParser) -> None:
-    p.add_argument("task", metavar="TASK", type=learn_task, help=_LEARN_TASK_HELP)
+    p.add_argument("task", metavar="TASK", type=mpc_ppo_task,
+                   help=_LEARN_TASK_HELP.replace(", ".join(LEARN_TASKS), ", ".join(MPC_PPO_TASKS)))
     p.add_argument("--budget-steps", type=positive_int, default=20_000, metavar="N",
                    help="training environment steps per seed, of each policy")
     p.add_argument("--seeds", nargs="+", type=seed, default=[0], metavar="S",
@@ -466,6 +477,14 @@ def learn_mpc_ppo(p: argparse.ArgumentParser) -> None:
                    help="iLQR iterations per call of the MPC head")
     p.add_argument("--eval-episodes", type=positive_int, default=16, metavar="N",
                    help="held-out evaluation episodes")
+    p.add_argument("--warm-start", action="store_true",
+                   help="warm-start each MPC solve from the previous plan, carried in the observation")
+    p.add_argument("--per-step", action="store_true",
+                   help="a per-step cost map: the cost network outputs weights and targets for every step")
+    p.add_argument("--no-equal-time", dest="equal_time", action="store_false",
+                   help="skip plain PPO trained for the MPC head's training time")
+    p.add_argument("--robustness", action="store_true",
+                   help="evaluate the trained policies unchanged on the task with +-30%% model changes")
     p.add_argument("--tensorboard", action="store_true",
                    help="log training to TensorBoard in OUT/agents/RUN/seedS/tb (needs 'pip install "
                         "tensorboard')")

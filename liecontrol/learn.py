@@ -8,6 +8,12 @@
     the same held-out episodes (:func:`learning.evaluate`); with the per-step compute of each policy at
     batch 1 and their ratio.  Writes ``report.md``, ``curves.png`` and ``learn.json`` into ``--out`` (default
     ``out/learn/TASK``); with ``--tensorboard`` also each run's agent and TensorBoard logs under ``agents/``.
+    ``--warm-start`` carries each solve's plan in the observation (:mod:`learning.mpc_warmstart`),
+    ``--per-step`` makes the cost network a per-step cost map, ``--no-equal-time`` skips the equal-time run,
+    and ``--robustness`` evaluates each seed's trained head and equal-steps PPO (and once the nominal task's
+    MPC expert) unchanged on the task's ±30 % model changes (:func:`learning.robustness.robustness_study`,
+    the same held-out episodes).  On a quadrotor task the head is the error-state MPC on the manifold
+    (:mod:`learning.mpc_head_quadrotor`).
 
 ``liecontrol learn bc TASK``
     Behaviour cloning from the task's MPC expert (:func:`learning.bc.bc_study`): an MLP policy and,
@@ -16,7 +22,8 @@
     ``bc.json`` into ``--out`` (default ``out/learn/TASK``).
 
 JSON of ``mpc-ppo``: ``{"env", "steps", "seeds", "eval_seeds", "mpc_ppo": [per seed],
-"ppo_equal_steps": [...], "ppo_equal_time": [...], "step_ms_batch1": {"mpc_ppo", "ppo", "ratio"}}``,
+"ppo_equal_steps": [...], "ppo_equal_time": [...], "robustness": [records of robustness_study plus "seed"],
+"step_ms_batch1": {"mpc_ppo", "ppo", "ratio"}}``,
 each per-seed record ``{"seed", "num_timesteps", "train_time_s", "return_mean", "return_std",
 "success_rate", "curve"}``.
 """
@@ -65,17 +72,37 @@ def _mpc_ppo_params(task) -> dict:
     return kw
 
 
+def _evaluate(model, task, ev_seeds, quiet: bool, timing: bool):
+    from learning.evaluate import evaluate
+
+    return evaluate(model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
+                    progress=not quiet, timing_batch1=timing)
+
+
+def _robustness(models: dict, task, ev_seeds, expert: bool) -> list[dict]:
+    """Records of :func:`learning.robustness.robustness_study` for ``models`` (and the nominal task's MPC
+    expert when ``expert``) on the task's default ±30 % grid, the held-out episodes of the curves."""
+    from learning.robustness import robustness_study
+
+    pols = dict(models) | ({"mpc_expert": "mpc"} if expert else {})
+    return robustness_study(pols, task, seeds=ev_seeds, dtype=torch.float32)
+
+
 @restores_threads
 def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 16, horizon: int | None = None,
             max_iter: int = 5, out: str | Path | None = None, threads: int = 1, log=None,
-            tensorboard: bool = False, quiet: bool = True) -> dict:
+            tensorboard: bool = False, quiet: bool = True, warm_start: bool = False, per_step: bool = False,
+            equal_time: bool = True, robustness: bool = False) -> dict:
     """Run the comparison of the module docstring and write its files into ``out`` (default
     ``out/learn/TASK``); returns the JSON record (plus ``"_files"``).  With ``tensorboard`` every run is
     saved and logs to TensorBoard in ``out/agents/RUN/seedS/`` (RUN: ``mpc_ppo``, ``ppo_equal_steps``,
-    ``ppo_equal_time``).  Progress bars on stderr unless ``quiet``; ``log(line)`` gets the progress lines."""
+    ``ppo_equal_time``).  Progress bars on stderr unless ``quiet``; ``log(line)`` gets the progress lines.
+    ``warm_start``/``per_step``: of the MPC head (:class:`~learning.mpc_policy.MPCActorCriticPolicy`);
+    ``equal_time``: also train plain PPO for the head's training time; ``robustness``: evaluate each seed's
+    trained head and equal-steps PPO (and once the nominal MPC expert) unchanged on the task's ±30 %
+    perturbations (:func:`learning.robustness.robustness_study`), into ``rec["robustness"]``."""
     from learning import baselines as bl
     from learning.envs.single import make_task
-    from learning.evaluate import evaluate
     from learning.mpc_policy import MPCActorCriticPolicy
 
     torch.set_num_threads(threads)
@@ -85,16 +112,18 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
     pk = {"task": task.name, "max_iter": int(max_iter)}
     if horizon is not None:
         pk["horizon"] = int(horizon)
+    pk |= {k: True for k, v in (("warm_start", warm_start), ("per_step", per_step)) if v}
     every = max(1, steps // 10)
     rec: dict = {"env": task.name, "steps": int(steps), "seeds": [int(s) for s in seeds],
                  "eval_seeds": ev_seeds, "mpc_policy_kwargs": dict(pk),
                  "mpc_ppo_params": _mpc_ppo_params(task), "mpc_ppo": [], "ppo_equal_steps": [],
-                 "ppo_equal_time": []}
+                 "ppo_equal_time": [], "robustness": []}
     root = Path(out) if out is not None else Path("out/learn") / task.name
     last = {}
     for s in seeds:
-        progress = TrainingProgress({"mpc_ppo": steps, "ppo_equal_steps": steps, "ppo_equal_time": None},
-                                    quiet=quiet, label=lambda k, s=s: f"{task.name} {k} seed {s}", log=log)
+        runs = {"mpc_ppo": steps, "ppo_equal_steps": steps} | ({"ppo_equal_time": None} if equal_time else {})
+        progress = TrainingProgress(runs, quiet=quiet, label=lambda k, s=s: f"{task.name} {k} seed {s}",
+                                    log=log)
 
         def kw(run: str, progress=progress, s=s) -> dict:  # logging; TensorBoard beside the saved agent
             d = dict(log=lambda line: progress.line(run, line), tensorboard=tensorboard)
@@ -104,25 +133,25 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
         r = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes,
                      params=dict(rec["mpc_ppo_params"]), policy=MPCActorCriticPolicy, policy_kwargs=pk,
                      **kw("mpc_ppo"))
-        ev = evaluate(r.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=not quiet, timing_batch1=True)
+        last["mpc_ppo"] = ev = _evaluate(r.model, task, ev_seeds, quiet, True)
         rec["mpc_ppo"].append(_record(r, ev))
-        last["mpc_ppo"] = ev
         say(f"{task.name} seed {s}: plain PPO, {steps} steps")
         p = bl.train("ppo", task, steps, seed=s, eval_every=every, eval_episodes=eval_episodes,
                      **kw("ppo_equal_steps"))
-        ev = evaluate(p.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=not quiet, timing_batch1=True)
+        last["ppo"] = ev = _evaluate(p.model, task, ev_seeds, quiet, True)
         rec["ppo_equal_steps"].append(_record(p, ev))
-        last["ppo"] = ev
-        budget_s = r.train_time_s
-        say(f"{task.name} seed {s}: plain PPO for the MPC-headed run's training time, {budget_s:.0f} s")
-        q = bl.train("ppo", task, 10**9, seed=s, eval_every=max(every, 4096), eval_episodes=eval_episodes,
-                     max_train_s=budget_s, **kw("ppo_equal_time"))
+        if equal_time:
+            budget_s = r.train_time_s
+            say(f"{task.name} seed {s}: plain PPO for the MPC-headed run's training time, {budget_s:.0f} s")
+            q = bl.train("ppo", task, 10**9, seed=s, eval_every=max(every, 4096), eval_episodes=eval_episodes,
+                         max_train_s=budget_s, **kw("ppo_equal_time"))
+            rec["ppo_equal_time"].append(_record(q, _evaluate(q.model, task, ev_seeds, quiet, False)))
         progress.close()
-        ev = evaluate(q.model, task, seeds=ev_seeds, num_envs=len(ev_seeds), dtype=torch.float32,
-                      progress=not quiet, timing_batch1=False)
-        rec["ppo_equal_time"].append(_record(q, ev))
+        if robustness:
+            say(f"{task.name} seed {s}: robustness to ±30 % model changes")
+            for x in _robustness({"mpc_ppo": r.model, "ppo_equal_steps": p.model}, task, ev_seeds,
+                                 expert=s == seeds[0]):
+                rec["robustness"].append(x | {"seed": int(s)})
     a = float(np.median(last["mpc_ppo"].step_ms_batch1))
     b = float(np.median(last["ppo"].step_ms_batch1))
     rec["step_ms_batch1"] = {"mpc_ppo": a, "ppo": b, "ratio": a / b}
@@ -134,6 +163,23 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
     Path(files["report"]).write_text(_report(rec))
     rec["_files"] = files
     return rec
+
+
+def robustness_rows(rec: dict) -> list[dict]:
+    """One row per (policy, perturbation): return and success over the seeds (mean, min, max of the
+    per-seed means)."""
+    groups: dict[tuple, list[dict]] = {}
+    for x in rec.get("robustness", []):
+        groups.setdefault((x["policy"], x["perturbation"]), []).append(x)
+    rows = []
+    for (pol, label), xs in groups.items():
+        ret = [x["return_mean"] for x in xs]
+        succ = [x["success_rate"] for x in xs]
+        rows.append({"policy": pol, "perturbation": label, "seeds": len(xs),
+                     "return_mean": float(np.mean(ret)),
+                     "return_min": float(np.min(ret)), "return_max": float(np.max(ret)),
+                     "success": float(np.mean(succ))})
+    return rows
 
 
 def _rows(rec: dict) -> list[dict]:
@@ -161,6 +207,14 @@ def _report(rec: dict) -> str:
     t = rec["step_ms_batch1"]
     lines += ["", f"Per-step compute at batch 1 (median): MPC-headed policy {t['mpc_ppo']:.3g} ms, "
               f"MLP policy {t['ppo']:.3g} ms — **{t['ratio']:.0f}×**.", "", "![curves](curves.png)", ""]
+    rows = robustness_rows(rec)
+    if rows:
+        rcols = ["policy", "perturbation", "seeds", "return_mean", "return_min", "return_max", "success"]
+        lines += ["## Robustness: the trained policies, unchanged, on the task with ±30 % model changes", "",
+                  "Return on the same held-out episodes; mean, min and max over the training seeds "
+                  "(`mpc_expert`: the MPC expert planning with the nominal model).", "",
+                  "| " + " | ".join(rcols) + " |", "|" + "---|" * len(rcols)]
+        lines += ["| " + " | ".join(markdown_cell(r[c]) for c in rcols) + " |" for r in rows] + [""]
     return "\n".join(lines)
 
 
@@ -249,12 +303,16 @@ def run(args: argparse.Namespace) -> int:
     if args.subcommand == "mpc-ppo":
         rec = mpc_ppo(args.task, steps=args.budget_steps, seeds=args.seeds, eval_episodes=args.eval_episodes,
                       horizon=args.mpc_horizon, max_iter=args.max_iter, out=args.out, threads=args.threads,
-                      log=log, tensorboard=args.tensorboard, quiet=args.quiet)
+                      log=log, tensorboard=args.tensorboard, quiet=args.quiet, warm_start=args.warm_start,
+                      per_step=args.per_step, equal_time=args.equal_time, robustness=args.robustness)
         print_table(_rows(rec), ["policy", "seed", "steps", "train_s", "return_mean", "return_std",
                                  "success"])
         t = rec["step_ms_batch1"]
         print(f"per-step compute at batch 1: MPC head {t['mpc_ppo']:.3g} ms, MLP {t['ppo']:.3g} ms "
               f"({t['ratio']:.0f}x)")
+        if rec["robustness"]:
+            print_table(robustness_rows(rec), ["policy", "perturbation", "seeds", "return_mean", "return_min",
+                                               "return_max", "success"])
     else:
         rec = bc(args.task, counts=args.demos, heldout=args.heldout_episodes,
                  eval_episodes=args.eval_episodes,

@@ -50,3 +50,11 @@ def test_an_example_runs_as_a_script():
     r = subprocess.run([sys.executable, "examples/se3_batched.py", "--poses", "10"], cwd=ROOT,
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and "largest error" in r.stdout
+
+
+def test_mpc_head_on_the_manifold_starts_as_the_expert_and_trains():
+    from examples.learning.mpc_head_quadrotor import main
+
+    out = main(steps=128, episodes=2, horizon=6)
+    assert all(out["checks"].values()), out
+    assert 0 <= out["heavier_vehicle"]["success_rate"] <= 1

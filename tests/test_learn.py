@@ -104,3 +104,46 @@ def test_tensorboard_flag_reaches_training(tmp_path, monkeypatch):
     with pytest.raises(RuntimeError, match="stop"):
         learn.mpc_ppo(TASK, steps=64, out=tmp_path)
     assert seen[0]["tensorboard"] is False and "out_dir" not in seen[0]
+
+
+def test_mpc_ppo_on_the_quadrotor_with_the_robustness_study(tmp_path):
+    """The manifold head (error-state MPC) through the CLI; ``--robustness`` evaluates each trained policy
+    (and the nominal expert once) unchanged on the task's perturbations, and the report tabulates them."""
+    from learning.robustness import default_perturbations
+
+    out = tmp_path / "learn"
+    args = ["learn", "mpc-ppo", "QuadrotorCircle", "--budget-steps", "32", "--eval-episodes", "2",
+            "--mpc-horizon", "5", "--per-step", "--robustness", "--no-equal-time", "--out", str(out),
+            "--json", str(tmp_path / "r.json"), "--quiet"]
+    assert cli.main(args) == 0
+    rec = json.loads((tmp_path / "r.json").read_text())
+    assert rec["mpc_policy_kwargs"] == {"task": "QuadrotorCircle", "max_iter": 5, "horizon": 5,
+                                        "per_step": True}
+    assert rec["ppo_equal_time"] == [] and len(rec["mpc_ppo"]) == len(rec["ppo_equal_steps"]) == 1
+    labels = list(default_perturbations("QuadrotorCircle"))
+    got = [(r["policy"], r["perturbation"]) for r in rec["robustness"]]
+    assert got == [(p, lab) for p in ("mpc_ppo", "ppo_equal_steps", "mpc_expert") for lab in labels]
+    nominal = {r["policy"]: r for r in rec["robustness"] if r["perturbation"] == "nominal"}
+    # the nominal row is the same evaluation as the curve's last point (same seeds, same policy)
+    assert nominal["mpc_ppo"]["return_mean"] == pytest.approx(rec["mpc_ppo"][0]["return_mean"], rel=1e-5)
+    assert "## Robustness" in (out / "report.md").read_text()
+
+
+def test_robustness_rows_aggregate_over_seeds():
+    from liecontrol.learn import robustness_rows
+
+    recs = [{"policy": "a", "perturbation": "nominal", "return_mean": r, "success_rate": s, "seed": i}
+            for i, (r, s) in enumerate([(10.0, 1.0), (20.0, 0.5), (30.0, 0.0)])]
+    (row,) = robustness_rows({"robustness": recs})
+    assert row == {"policy": "a", "perturbation": "nominal", "seeds": 3, "return_mean": 20.0,
+                   "return_min": 10.0, "return_max": 30.0, "success": 0.5}
+
+
+def test_only_mpc_ppo_takes_the_quadrotors():
+    from liecontrol._options import MPC_PPO_TASKS, learn_task, mpc_ppo_task
+
+    assert mpc_ppo_task("quadrotorc") == "QuadrotorCircle" and "QuadrotorFigureEight" in MPC_PPO_TASKS
+    import argparse
+
+    with pytest.raises(argparse.ArgumentTypeError, match="QuadrotorCircle cannot be learnt"):
+        learn_task("QuadrotorCircle")

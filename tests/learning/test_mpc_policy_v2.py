@@ -223,3 +223,34 @@ def test_misuse_is_an_error():
         env.attach(make_mpc_ppo(task, num_envs=2, n_steps=16, batch_size=32, policy_kwargs=PK).policy)
     with pytest.raises(ValueError, match="PlanInObservation"):
         WarmStartMPCPPO("MlpPolicy", SB3VecEnv(task, 2), n_steps=16, batch_size=32)
+
+
+def test_baselines_train_a_warm_started_head_and_reload_it_safely(tmp_path):
+    """``learning.baselines`` wraps the env and picks WarmStartMPCPPO for ``warm_start``; the saved agent
+    (policy.pt + agent.json, no pickle) reloads with the same plans and actions."""
+    from learning import baselines as bl
+
+    task = make_task("CartPoleSwingUp")
+    pk = {"task": task.name, **PK, "warm_start": True, "per_step": True}
+    res = bl.train("ppo", task, 32, seed=0, eval_every=32, eval_episodes=1, out_dir=tmp_path,
+                   params={"n_envs": 2, "n_steps": 16, "batch_size": 32, "n_epochs": 1},
+                   policy="MPCActorCriticPolicy", policy_kwargs=pk, tensorboard=False)
+    assert isinstance(res.model, WarmStartMPCPPO)
+    _perturb(res.model.policy.mlp_extractor.mpc.cost.net)
+    bl.save_agent(res, tmp_path)
+    loaded = bl.load_agent(tmp_path)
+    assert isinstance(loaded, WarmStartMPCPPO) and loaded.policy.warm_start and loaded.policy.per_step
+    obs = task.observe(task.initial_state(torch.rand(3, 4, generator=torch.Generator().manual_seed(2))))
+    for model in (res.model, loaded):
+        model.reset()
+    for _ in range(3):  # the plans carried between calls stay equal too
+        torch.testing.assert_close(loaded.act(obs.float()), res.model.act(obs.float()), rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("algo, policy", [("sac", "MPCActorCriticPolicy"), ("ppo", "MlpPolicy")])
+def test_baselines_refuse_warm_start_without_the_mpc_head_and_ppo(algo, policy):
+    from learning import baselines as bl
+
+    with pytest.raises(ValueError, match="warm_start=True needs PPO with MPCActorCriticPolicy"):
+        bl.make_agent(algo, "CartPoleSwingUp", params={"n_envs": 2}, policy=policy,
+                      policy_kwargs={"task": "CartPoleSwingUp", "warm_start": True})
