@@ -37,20 +37,15 @@ import torch
 from torch import Tensor, nn
 
 from learning.envs.quadrotor import QuadrotorTrack, QuadrotorTrackingExpert
+from learning.mpc_policy import _mlp, _MPCHead
 
 __all__ = ["ErrorStateMPCExtractor"]
 
 
-def _mlp(sizes: list[int], activation_fn: type[nn.Module]) -> list[nn.Module]:
-    layers: list[nn.Module] = []
-    for a, b in zip(sizes[:-1], sizes[1:]):
-        layers += [nn.Linear(a, b), activation_fn()]
-    return layers
-
-
-class ErrorStateMPCExtractor(nn.Module):
+class ErrorStateMPCExtractor(_MPCHead):
     """SB3 ``mlp_extractor`` of :class:`~learning.mpc_policy.MPCActorCriticPolicy` on a
-    :class:`QuadrotorTrack` (module docstring); the interface of :class:`~learning.mpc_policy.MPCExtractor`.
+    :class:`QuadrotorTrack` (module docstring); the interface of :class:`~learning.mpc_policy.MPCExtractor`
+    (``forward_actor``, ``forward_critic``, ``pop_plan`` shared with it).
 
     Args:
         task: the quadrotor task.
@@ -157,19 +152,3 @@ class ErrorStateMPCExtractor(nn.Module):
         nxt = torch.nan_to_num(((U - hover) / scale), nan=0.0).clamp(-1.0, 1.0).flatten(-2)
         return a, nxt.reshape(*lead, T * 4)
 
-    def forward_actor(self, features: Tensor) -> Tensor:
-        a, plan = self.act_and_plan(features)
-        if self.record_plans and plan is not None:
-            self.recorded_plan = plan.detach()
-        return a
-
-    def pop_plan(self) -> Tensor | None:
-        """The plan recorded by the last rollout call (then forgotten), or None."""
-        plan, self.recorded_plan = self.recorded_plan, None
-        return plan
-
-    def forward_critic(self, features: Tensor) -> Tensor:
-        return self.value_net(features[..., :self.task.obs_dim])
-
-    def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
-        return self.forward_actor(features), self.forward_critic(features)

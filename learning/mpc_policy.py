@@ -203,7 +203,38 @@ class LearnedTaskCost(nn.Module):
         return cost if self.periodic is None else PeriodicQuadraticCost(cost, self.periodic)
 
 
-class MPCExtractor(nn.Module):
+class _MPCHead(nn.Module):
+    """What the MPC heads share (SB3's ``mlp_extractor`` interface around their ``act_and_plan``): the actor
+    latent is the action, recorded plans for :class:`~learning.mpc_warmstart.PlanInObservation`, a critic
+    MLP ``value_net`` on the observation part of the features."""
+
+    task: Task
+    value_net: nn.Module
+    record_plans: bool = False
+    recorded_plan: Tensor | None = None
+
+    def act_and_plan(self, features: Tensor) -> tuple[Tensor, Tensor | None]:
+        raise NotImplementedError
+
+    def forward_actor(self, features: Tensor) -> Tensor:
+        a, plan = self.act_and_plan(features)
+        if self.record_plans and plan is not None:
+            self.recorded_plan = plan.detach()
+        return a
+
+    def pop_plan(self) -> Tensor | None:
+        """The warm start recorded by the last rollout call (then forgotten), or None."""
+        plan, self.recorded_plan = self.recorded_plan, None
+        return plan
+
+    def forward_critic(self, features: Tensor) -> Tensor:
+        return self.value_net(features[..., :self.task.obs_dim])
+
+    def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
+        return self.forward_actor(features), self.forward_critic(features)
+
+
+class MPCExtractor(_MPCHead):
     """SB3 ``mlp_extractor`` whose actor latent is the MPC action ``u / u_max`` and whose critic latent
     is an MLP of the observation (``forward``, ``forward_actor``, ``forward_critic``, ``latent_dim_pi``,
     ``latent_dim_vf`` as SB3's ``MlpExtractor``).  No hidden state: every call is a cold solve, or, with
@@ -305,22 +336,6 @@ class MPCExtractor(nn.Module):
         plan = (nxt.u / self.u_max).clamp(-1.0, 1.0).flatten(-2) if self.warm_start else None
         return a, plan
 
-    def forward_actor(self, features: Tensor) -> Tensor:
-        a, plan = self.act_and_plan(features)
-        if self.record_plans and plan is not None:
-            self.recorded_plan = plan.detach()
-        return a
-
-    def pop_plan(self) -> Tensor | None:
-        """The warm start recorded by the last rollout call (then forgotten), or None."""
-        plan, self.recorded_plan = self.recorded_plan, None
-        return plan
-
-    def forward_critic(self, features: Tensor) -> Tensor:
-        return self.value_net(features[..., :self.task.obs_dim])
-
-    def forward(self, features: Tensor) -> tuple[Tensor, Tensor]:
-        return self.forward_actor(features), self.forward_critic(features)
 
 
 class MPCActorCriticPolicy(ActorCriticPolicy):
