@@ -120,7 +120,7 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
                  "ppo_equal_time": [], "robustness": []}
     root = Path(out) if out is not None else Path("out/learn") / task.name
     last = {}
-    for s in seeds:
+    for i, s in enumerate(seeds):
         runs = {"mpc_ppo": steps, "ppo_equal_steps": steps} | ({"ppo_equal_time": None} if equal_time else {})
         progress = TrainingProgress(runs, quiet=quiet, label=lambda k, s=s: f"{task.name} {k} seed {s}",
                                     log=log)
@@ -150,7 +150,7 @@ def mpc_ppo(env: str, *, steps: int = 20_000, seeds=(0,), eval_episodes: int = 1
         if robustness:
             say(f"{task.name} seed {s}: robustness to ±30 % model changes")
             for x in _robustness({"mpc_ppo": r.model, "ppo_equal_steps": p.model}, task, ev_seeds,
-                                 expert=s == seeds[0]):
+                                 expert=i == 0):
                 rec["robustness"].append(x | {"seed": int(s)})
     a = float(np.median(last["mpc_ppo"].step_ms_batch1))
     b = float(np.median(last["ppo"].step_ms_batch1))
