@@ -204,7 +204,8 @@ class LearnedTaskCost(nn.Module):
 
 
 class _MPCHead(nn.Module):
-    """What the MPC heads share (SB3's ``mlp_extractor`` interface around their ``act_and_plan``): the actor
+    """What the MPC heads share (SB3's ``mlp_extractor`` interface around the ``act_and_plan`` each subclass
+    defines: ``features -> (action, next plan or None)``): the actor
     latent is the action, recorded plans for :class:`~learning.mpc_warmstart.PlanInObservation`, a critic
     MLP ``value_net`` on the observation part of the features."""
 
@@ -212,9 +213,6 @@ class _MPCHead(nn.Module):
     value_net: nn.Module
     record_plans: bool = False
     recorded_plan: Tensor | None = None
-
-    def act_and_plan(self, features: Tensor) -> tuple[Tensor, Tensor | None]:
-        raise NotImplementedError
 
     def forward_actor(self, features: Tensor) -> Tensor:
         a, plan = self.act_and_plan(features)
