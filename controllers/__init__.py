@@ -23,6 +23,9 @@ Submodules (loaded on first use, ``controllers.riccati``):
                ellipsoid obstacles, distances, composed into one ``ResidualCost``
 ``boxqp``      batched box-constrained QP (projected Newton)
 ``mpc``        receding-horizon MPC, ``MPCState`` and the ``MPCPolicy`` module
+``multistart`` iLQR from K initial guesses at once (zero, bang, random, the closed-loop LQR "hold"), the
+               best certified plan kept
+``sampling``   MPPI and predictive sampling, batched and derivative-free; ``SamplingMPC``
 ``manifold_mpc`` error-state MPC on ``torchlie`` manifolds (seed 003 Algorithm 1 and its iterated variant)
 ``ik``         damped least squares and batched IK
 ``planar_ik``  planar arms (§4-5): FK/Jacobians, Gauss-Newton IK (position, orientation, object frame),
@@ -42,8 +45,8 @@ Private: ``_validate`` (argument checks), ``_lq_kernels`` (the Riccati sweeps sh
 import importlib
 
 __all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis", "sdf", "ilqr",
-           "ilqr_lifted", "task_costs", "task_costs_ext", "lqt_cookbook", "boxqp", "mpc", "manifold_mpc",
-           "ik", "planar_ik", "impedance", "optim", "ergodic", "systems"]
+           "ilqr_lifted", "task_costs", "task_costs_ext", "lqt_cookbook", "boxqp", "mpc", "multistart",
+           "sampling", "manifold_mpc", "ik", "planar_ik", "impedance", "optim", "ergodic", "systems"]
 
 
 def __getattr__(name: str):

@@ -56,6 +56,7 @@ from torch import Tensor
 from learning import distributed as _dist
 from learning.envs.single import as_action, as_device, as_dtype, int_arg, make_task
 from learning.envs.task import Task
+from learning.evaluate_env import evaluate_env, is_foreign
 from learning.policies import as_policy
 from learning.vector import TaskVectorEnv
 
@@ -148,7 +149,8 @@ class EvalResult:
         per_solve = (lambda v: float((v * self.solver_steps).sum() / solves) if solves else math.nan)
         s: dict[str, Any] = {
             "task": self.meta.get("task"), "policy": self.meta.get("policy"), "episodes": E,
-            "num_envs": self.meta.get("num_envs"), "success_rate": rate(self.success),
+            "num_envs": self.meta.get("num_envs"),
+            "success_rate": rate(self.success) if self.meta.get("success_defined", True) else math.nan,
             "invalid_count": int(self.invalid.sum()), "invalid_rate": rate(self.invalid),
             "terminated_rate": rate(self.terminated), "exceptions": int(sum(1 for e in self.errors if e)),
             "return": _stats(self.returns), "final_error": _stats(self.final_error),
@@ -310,6 +312,20 @@ def _reset(policy, done: Tensor | None) -> str:
     return ""
 
 
+def _seeds(seeds, episodes, seed, num_envs: int) -> list[int]:
+    """The episodes' seeds: ``seeds`` checked, or ``seed, seed+1, ...`` (``episodes`` of them, by default
+    ``num_envs``)."""
+    if seeds is None:
+        E = int_arg(num_envs if episodes is None else episodes, "episodes", "evaluate")
+        return [int_arg(seed, "seed", "evaluate", 0) + i for i in range(E)]
+    seeds = [int_arg(s, "seeds", "evaluate", 0) for s in seeds]
+    if episodes is not None and episodes != len(seeds):
+        raise ValueError("evaluate: give 'seeds' or 'episodes', not both with different counts")
+    if not seeds:
+        raise ValueError("evaluate: argument 'seeds' is empty")
+    return seeds
+
+
 def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_envs: int = 16,
              episodes: int | None = None, seeds: list[int] | None = None, seed: int = 0,
              max_episode_steps: int | None = None, task_kwargs: dict | None = None,
@@ -321,7 +337,10 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
     Args:
         policy: anything :func:`learning.policies.as_policy` accepts (``"mpc"`` for the task's expert).
         task: a :class:`Task`, Task class or task name (``task_kwargs`` its arguments), or a gymnasium id
-            ``"liecontrol/<Name>-v0"``.
+            ``"liecontrol/<Name>-v0"`` — or any other gymnasium environment: a registered id
+            (``"Pendulum-v1"``, ``task_kwargs`` then go to ``gym.make``), an ``Env`` or a ``VectorEnv``,
+            run by :func:`learning.evaluate_env.evaluate_env` (the policy then acts in the env's own
+            units; ``"mpc"`` is the env's model MPC, :mod:`learning.env_models`).
         num_envs: batch size N (at most the number of episodes).
         episodes, seeds, seed: the episodes are those of ``seeds`` (one each; env seeding as
             :class:`TaskVectorEnv`, so episode ``s`` equals ``TaskEnv`` reset with ``seed=s``), by default
@@ -342,22 +361,20 @@ def evaluate(policy: Any, task: Task | str | type = "PendulumSwingUp", *, num_en
     Returns:
         an :class:`EvalResult` (module docstring for what is measured and how failures are handled).
     """
-    if isinstance(task, str) and "/" in task:  # a gymnasium id
-        task = task.split("/", 1)[1].rsplit("-v", 1)[0]
-    task = make_task(task, task_kwargs)
     dtype = as_dtype(dtype)
     device = as_device(device, "evaluate")
     num_envs = int_arg(num_envs, "num_envs", "evaluate")
-    if seeds is None:
-        E = int_arg(num_envs if episodes is None else episodes, "episodes", "evaluate")
-        seeds = [int_arg(seed, "seed", "evaluate", 0) + i for i in range(E)]
-    else:
-        seeds = [int_arg(s, "seeds", "evaluate", 0) for s in seeds]
-        if episodes is not None and episodes != len(seeds):
-            raise ValueError("evaluate: give 'seeds' or 'episodes', not both with different counts")
-        E = len(seeds)
-        if E < 1:
-            raise ValueError("evaluate: argument 'seeds' is empty")
+    seeds = _seeds(seeds, episodes, seed, num_envs)
+    if is_foreign(task):
+        if max_episode_steps is not None:
+            int_arg(max_episode_steps, "max_episode_steps", "evaluate")
+        return evaluate_env(policy, task, num_envs=num_envs, seeds=seeds, max_episode_steps=max_episode_steps,
+                            env_kwargs=task_kwargs, device=device, dtype=dtype, progress=progress,
+                            timing_batch1=timing_batch1, timing_steps=timing_steps)
+    if isinstance(task, str) and "/" in task:  # a gymnasium id
+        task = task.split("/", 1)[1].rsplit("-v", 1)[0]
+    task = make_task(task, task_kwargs)
+    E = len(seeds)
     T = task.max_episode_steps if max_episode_steps is None else int_arg(max_episode_steps,
                                                                          "max_episode_steps", "evaluate")
     if timing_steps is not None:

@@ -252,6 +252,22 @@ def bench_envs(p: argparse.ArgumentParser) -> None:
     p.set_defaults(_check=_check_devices)
 
 
+def bench_sampling(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--samples", type=positive_int, default=256, metavar="K", help="samples per iteration")
+    p.add_argument("--horizon", type=positive_int, default=40, metavar="T", help="planning horizon")
+    p.add_argument("--iterations", type=positive_int, default=1, metavar="N",
+                   help="sample-update iterations per MPC step")
+    p.add_argument("--batch", type=positive_int, nargs="+", default=[1, 64], metavar="B",
+                   help="batch sizes (environments planned at once)")
+    p.add_argument("--steps", type=positive_int, default=200, metavar="N", help="closed-loop episode length")
+    p.add_argument("--seeds", type=positive_int, default=5, metavar="N",
+                   help="repeats of the one-step plan cost")
+    p.add_argument("--repeats", type=positive_int, default=7, metavar="N",
+                   help="timing samples (the median is reported)")
+    p.add_argument("--dtype", choices=DTYPES, default="float32", help="dtype of both planners")
+    _common(p)
+
+
 def _workload_list(s: str) -> tuple[str, ...]:
     names = tuple(w.strip() for w in s.split(",") if w.strip())
     bad = [w for w in names if w not in SOLVER_WORKLOADS]
@@ -756,6 +772,9 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
      "iLQR swing-ups vs mpc.pytorch box-DDP, pypose MPC and crocoddyl"),
     (("bench", "envs"), bench_envs, "liecontrol.bench.envs",
      "batched environment steps per second vs gymnasium SyncVectorEnv and EnvPool"),
+    (("bench", "sampling"), bench_sampling, "liecontrol.bench.sampling",
+     "MPPI and predictive sampling (batched) vs pytorch_mppi on a pendulum swing-up: plan cost, time and "
+     "return"),
     (("bench", "solver"), bench_solver, "liecontrol.bench.solver",
      "the solver workloads (MPC steps, iLQR swing-ups, the MPC policy head, the cookbook manipulator, car "
      "and bicopter) vs crocoddyl, CasADi, a numpy iLQR and SB3's MLP policy"),

@@ -58,3 +58,10 @@ def test_mpc_head_on_the_manifold_starts_as_the_expert_and_trains():
     out = main(steps=128, episodes=2, horizon=6)
     assert all(out["checks"].values()), out
     assert 0 <= out["heavier_vehicle"]["success_rate"] <= 1
+
+
+def test_gym_pendulum_mpc_brakes_where_the_single_start_swings():
+    from examples.learning.gym_pendulum_mpc import main
+
+    out = main(episodes=2, steps=10, horizon=20, hold_steps=8)
+    assert all(out["checks"].values()), out

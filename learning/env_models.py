@@ -1,0 +1,166 @@
+"""Models of gymnasium environments the project did not write: what an MPC needs to act in them.
+
+An RL agent learns a policy from the env's rewards; an MPC plans with a model instead.  An
+:class:`EnvModel` is that model for one gymnasium id: the dynamics (a :class:`~controllers.dynamics.System`
+in the env's units), the planning cost (the env's reward, negated, where it is smooth enough to plan
+with), the map from the env's observation to the system's state, the action box and the planner's
+settings.  ``knows`` states what the MPC is given that an RL agent is not (the model, and where the
+cost differs from the reward).
+
+:func:`env_model` looks one up by id (or from an env instance); :func:`register_env_model` adds one.
+The shipped models:
+
+========================  ===================================================================================
+``Pendulum-v1``           :class:`controllers.systems.Pendulum` with Pendulum-v1's parameters (the rod
+                          pendulum as an equivalent point mass, semi-implicit Euler, dt 0.05, the same as
+                          :class:`learning.envs.PendulumSwingUp`); cost = the reward
+                          ``φ² + 0.1 ω² + 0.001 u²`` with φ wrapped (:class:`~controllers.costs.
+                          PeriodicQuadraticCost`), the last state's term 10 times (a value-to-go
+                          stand-in); horizon 40.  Not modelled: the env clips ``|ω|`` to 8 rad/s.
+``MountainCarContinuous``  the env's dynamics exactly (:class:`learning._mountain_car.MountainCar`: clips,
+``-v0``                   the inelastic left wall); cost = the reward's ``0.1 u²`` plus a terminal energy
+                          deficit in place of the sparse +100 (:class:`~learning._mountain_car.
+                          EnergyGoalCost`: pumping along the velocity is the least ``Σu²`` per joule).
+========================  ===================================================================================
+
+A model is checked against its env (:func:`check_model`): the spaces must be ``Box`` es, the action
+dimension the system's ``m``, and the observation map must give ``(N, n)`` states.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import gymnasium as gym
+import torch
+from torch import Tensor
+
+from learning.evaluate_env import check_box_env, env_id_of
+
+__all__ = ["EnvModel", "env_model", "register_env_model", "ENV_MODELS", "check_model"]
+
+
+@dataclass(frozen=True, eq=False)
+class EnvModel:
+    """What an MPC needs to act in a gymnasium environment (module docstring).
+
+    Attributes:
+        env_id: the gymnasium id.
+        system: the dynamics, ``step(x (*B, n), u (*B, m), t)`` in the env's units (one env step).
+        cost: ``cost(horizon, dtype, device) -> Cost`` over ``horizon`` steps (``evaluate(x (*B, T+1, n),
+            u (*B, T, m)) -> (*B,)``, :mod:`controllers.costs`).
+        state_from_obs: ``(N, obs_dim) -> (N, n)`` observations to states (dtype and device kept).
+        action_low, action_high: the env's action box ``(m,)``.
+        horizon, max_iter, random_starts: the planner's defaults (:class:`learning.model_mpc.ModelMPC`).
+        knows: what the MPC knows that an RL agent does not.
+        options: ``ILQROptions`` overrides (e.g. tolerances for finite-difference Jacobians).
+    """
+
+    env_id: str
+    system: Any
+    cost: Callable[..., Any]
+    state_from_obs: Callable[[Tensor], Tensor]
+    action_low: tuple[float, ...]
+    action_high: tuple[float, ...]
+    horizon: int = 30
+    max_iter: int = 20
+    random_starts: int = 0
+    knows: str = ""
+    options: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def n(self) -> int:
+        return int(self.system.n)
+
+    @property
+    def m(self) -> int:
+        return int(self.system.m)
+
+
+#: model factories by gymnasium id: ``factory(env or None) -> EnvModel``
+ENV_MODELS: dict[str, Callable[[Any], EnvModel]] = {}
+
+
+def register_env_model(env_id: str, factory: Callable[[Any], EnvModel]) -> None:
+    """Register ``factory(env or None) -> EnvModel`` for ``env_id`` (replacing any earlier one)."""
+    if not isinstance(env_id, str) or not callable(factory):
+        raise TypeError("register_env_model: arguments must be an id (str) and a callable factory")
+    ENV_MODELS[env_id] = factory
+
+
+def _base_id(env_id: str) -> str:
+    return env_id.split(":", 1)[-1]
+
+
+def env_model(env: Any) -> EnvModel:
+    """The :class:`EnvModel` of a gymnasium id, ``Env`` or ``VectorEnv`` (checked against the env's spaces
+    when an env is given).  An env without a registered model is a ``ValueError`` saying how to give one."""
+    if isinstance(env, EnvModel):
+        return env
+    eid = env_id_of(env)
+    if eid is None or _base_id(eid) not in ENV_MODELS:
+        raise ValueError(f"env_model: no model is registered for {eid or type(env).__name__!r} (known: "
+                         f"{sorted(ENV_MODELS)}); an MPC on a foreign env needs a System, a cost and an "
+                         "observation->state map: build an EnvModel and register_env_model(id, factory)")
+    model = ENV_MODELS[_base_id(eid)](None if isinstance(env, str) else env)
+    if not isinstance(env, str):
+        check_model(model, env)
+    return model
+
+
+def check_model(model: EnvModel, env: Any) -> None:
+    """A ``TypeError``/``ValueError`` naming the mismatch when ``model`` does not fit ``env``'s spaces."""
+    vec = isinstance(env, gym.vector.VectorEnv)
+    aspace = env.single_action_space if vec else env.action_space
+    ospace = env.single_observation_space if vec else env.observation_space
+    m = check_box_env(aspace, ospace, "env_model")
+    if m != model.m:
+        raise ValueError(f"env_model: the env has {m} actions but the model's system has m = {model.m}")
+    obs = torch.as_tensor(ospace.sample(), dtype=torch.float64).reshape(1, -1)
+    x = model.state_from_obs(obs)
+    if not isinstance(x, Tensor) or tuple(x.shape) != (1, model.n):
+        got = tuple(x.shape) if isinstance(x, Tensor) else type(x).__name__
+        raise ValueError(f"env_model: the observation map of {model.env_id} turns an observation of shape "
+                         f"(1, {obs.shape[1]}) into {got}, expected (1, {model.n}) (the system's state)")
+
+
+# ------------------------------------------------------------------------------------- Pendulum-v1
+
+
+def _pendulum_state(obs: Tensor) -> Tensor:
+    """``[cos φ, sin φ, ω]`` (φ = 0 upright) to the model's ``[θ, ω]`` (θ = φ + π, 0 hanging)."""
+    return torch.stack([torch.atan2(-obs[..., 1], -obs[..., 0]), obs[..., 2]], -1)
+
+
+def _pendulum_cost(horizon: int, dtype=torch.float64, device=None, terminal: float = 10.0):
+    from controllers.costs import PeriodicQuadraticCost, QuadraticCost
+
+    kw = dict(dtype=dtype, device=device)
+    Q = torch.diag(torch.tensor([1.0, 0.1], **kw)).expand(horizon + 1, 2, 2).clone()
+    Q[-1] *= terminal
+    base = QuadraticCost(Q=Q, R=torch.tensor([[0.001]], **kw), x_ref=torch.tensor([math.pi, 0.0], **kw))
+    return PeriodicQuadraticCost(base, torch.tensor([True, False], device=device))
+
+
+def _pendulum_v1(env: Any = None) -> EnvModel:
+    from learning.envs.pendulum import _gym_pendulum
+
+    return EnvModel(
+        env_id="Pendulum-v1", system=_gym_pendulum(), cost=_pendulum_cost, state_from_obs=_pendulum_state,
+        action_low=(-2.0,), action_high=(2.0,), horizon=40, max_iter=20, random_starts=0,
+        knows="the pendulum's equations of motion and parameters, and the reward as the planning cost")
+
+
+register_env_model("Pendulum-v1", _pendulum_v1)
+
+
+def _mountain_car_continuous(env: Any = None) -> EnvModel:
+    from learning._mountain_car import mountain_car_model
+
+    return mountain_car_model(env)
+
+
+register_env_model("MountainCarContinuous-v0", _mountain_car_continuous)
