@@ -60,28 +60,18 @@ def select_best(cost: Tensor, converged: Tensor) -> Tensor:
     return torch.where(ok.any(-1), best_ok, best_any)
 
 
-def _take(v: Tensor, idx: Tensor, dim: int) -> Tensor:
-    """``v`` indexed by ``idx (*B,)`` along ``dim`` (the K dim, right after the batch dims)."""
-    nb = idx.dim()
-    shape = list(idx.shape) + [1] * (v.dim() - nb)
-    i = idx.reshape(shape[:dim] + [1] + shape[dim:-1]) if dim < nb else idx.reshape(shape)
-    i = i.expand(*v.shape[:dim], 1, *v.shape[dim + 1:])
-    return v.gather(dim, i).squeeze(dim)
+def _take(v: Tensor, idx: Tensor) -> Tensor:
+    """``v (K, *B, ...)`` at guess ``idx (*B,)`` per element: ``(*B, ...)``."""
+    i = idx.reshape(1, *idx.shape, *[1] * (v.dim() - 1 - idx.dim())).expand(1, *v.shape[1:])
+    return v.gather(0, i).squeeze(0)
 
 
 def _expand_problem(problem: ILQRProblem, K: int) -> ILQRProblem:
-    """The problem with a guess dim ``K`` after its batch dims: ``x0 (*B, K, n)``, batched limits likewise."""
-    x0 = problem.x0.unsqueeze(-2).expand(*problem.x0.shape[:-1], K, problem.n)
-    kw = {"x0": x0}
-    for name in ("u_lower", "u_upper"):
-        v = getattr(problem, name)
-        if isinstance(v, Tensor) and v.dim() > 2:  # (*B, T, m) -> (*B, 1, T, m)
-            kw[name] = v.unsqueeze(-3)
-    cost = problem.cost
-    if isinstance(cost, QuadraticCost) and len(cost.batch_shape) > 0:
-        raise ValueError("ilqr_multistart: a QuadraticCost with batch dims is not supported (its batch would "
-                         "have to broadcast against (*B, K)); give a cost shared by the batch")
-    return dataclasses.replace(problem, **kw)
+    """The problem with a guess dim ``K`` *in front of* its batch dims: ``x0 (K, *B, n)``.  Leading, so that
+    anything batched over ``(*B,)`` — a cost's targets and weights, the limits — broadcasts against
+    ``(K, *B)`` as it did against ``(*B,)``."""
+    x0 = problem.x0.expand(K, *problem.x0.shape)
+    return dataclasses.replace(problem, x0=x0)
 
 
 def ilqr_multistart(problem: ILQRProblem, u_inits: Tensor, *, method: ILQRMethod | str = ILQRMethod.RECURSIVE,
@@ -91,8 +81,8 @@ def ilqr_multistart(problem: ILQRProblem, u_inits: Tensor, *, method: ILQRMethod
     and keep the best certified plan per element (module docstring).
 
     Args:
-        problem: an :class:`~controllers.ilqr.ILQRProblem` with batch ``(*B,)``; its cost must be shared by
-            the batch (not a batched ``QuadraticCost``).
+        problem: an :class:`~controllers.ilqr.ILQRProblem` with batch ``(*B,)`` (the guesses run as a batch
+            ``(K, *B)``, so a cost or limits batched over ``(*B,)`` stay with their elements).
         u_inits: ``(*B, K, T, m)`` or ``(K, T, m)`` guesses (projected onto the limits by the solver).
         method, grad, options: as :func:`~controllers.ilqr.ilqr`; gradients flow through the chosen guess's
             solution (the choice itself is piecewise constant).
@@ -109,19 +99,24 @@ def ilqr_multistart(problem: ILQRProblem, u_inits: Tensor, *, method: ILQRMethod
     K = u_inits.shape[-3]
     if K < 1:
         raise ValueError("ilqr_multistart: argument 'u_inits' has no guess (K = 0)")
-    sol = ilqr(_expand_problem(problem, K), u_inits, method=method, grad=grad, options=options)
-    nb = sol.cost.dim() - 1  # the K dim is the last batch dim
-    idx = select_best(sol.cost, sol.status.converged)
+    bs = problem.batch_shape
+    try:
+        U = u_inits.movedim(-3, 0).expand(K, *torch.broadcast_shapes(bs, u_inits.shape[:-3]), T, m)
+    except RuntimeError:
+        raise ValueError(f"ilqr_multistart: argument 'u_inits' has batch dims {tuple(u_inits.shape[:-3])} "
+                         f"that do not broadcast with the problem's {tuple(bs)}") from None
+    sol = ilqr(_expand_problem(problem, K), U, method=method, grad=grad, options=options)
+    costs = sol.cost.movedim(0, -1)
+    conv = sol.status.converged.movedim(0, -1)
+    idx = select_best(costs, conv)
     st = sol.status
-    status = SolverStatus(converged=_take(st.converged, idx, nb), iterations=_take(st.iterations, idx, nb),
-                          reason=_take(st.reason, idx, nb))
-    best = ILQRSolution(x=_take(sol.x, idx, nb), u=_take(sol.u, idx, nb), K=_take(sol.K, idx, nb),
-                        k=_take(sol.k, idx, nb), cost=_take(sol.cost, idx, nb), status=status,
-                        clamped=_take(sol.clamped, idx, nb),
-                        cost_history=_take(sol.cost_history, idx.unsqueeze(0).expand(
-                            sol.cost_history.shape[0], *idx.shape), nb + 1),
-                        mu=_take(sol.mu, idx, nb), kkt_residual=_take(sol.kkt_residual, idx, nb))
-    return MultiStartSolution(best=best, choice=idx, costs=sol.cost.detach(), converged=st.converged)
+    status = SolverStatus(converged=_take(st.converged, idx), iterations=_take(st.iterations, idx),
+                          reason=_take(st.reason, idx))
+    best = ILQRSolution(x=_take(sol.x, idx), u=_take(sol.u, idx), K=_take(sol.K, idx), k=_take(sol.k, idx),
+                        cost=_take(sol.cost, idx), status=status, clamped=_take(sol.clamped, idx),
+                        cost_history=_take(sol.cost_history.movedim(0, -1), idx).movedim(-1, 0),
+                        mu=_take(sol.mu, idx), kkt_residual=_take(sol.kkt_residual, idx))
+    return MultiStartSolution(best=best, choice=idx, costs=costs.detach(), converged=conv)
 
 
 def guesses(batch_shape: tuple[int, ...] | torch.Size, horizon: int, lower: Tensor, upper: Tensor, *,
@@ -139,8 +134,10 @@ def guesses(batch_shape: tuple[int, ...] | torch.Size, horizon: int, lower: Tens
     lo, hi = lower.reshape(-1), upper.reshape(-1)
     m = lo.shape[0]
     kw = dict(dtype=lo.dtype, device=lo.device)
-    if not (torch.isfinite(lo).all() and torch.isfinite(hi).all()):
-        raise ValueError("guesses: arguments 'lower' and 'upper' must be finite (m,) limits")
+    if not (torch.isfinite(lo).all() and torch.isfinite(hi).all()) or bool((lo > hi).any()):
+        raise ValueError("guesses: arguments 'lower' and 'upper' must be finite (m,) limits, lower <= upper")
+    if random > 0 and generator is None:
+        raise ValueError("guesses: random starts need an explicit 'generator' (torch.Generator)")
     zero = torch.zeros(m, **kw).clamp(lo, hi)
     bang = zero.expand(2 * m, m).clone()
     ar = torch.arange(m, device=lo.device)

@@ -35,12 +35,13 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import gymnasium as gym
+import numpy as np
 import torch
 from torch import Tensor
 
 from learning.evaluate_env import check_box_env, env_id_of
 
-__all__ = ["EnvModel", "env_model", "register_env_model", "ENV_MODELS", "check_model"]
+__all__ = ["EnvModel", "env_model", "register_env_model", "ENV_MODELS", "check_model", "NEUTRAL_WRAPPERS"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -111,14 +112,50 @@ def env_model(env: Any) -> EnvModel:
     return model
 
 
+#: wrappers that change neither what the env observes nor what an action does (a model still fits)
+NEUTRAL_WRAPPERS = ("TimeLimit", "OrderEnforcing", "PassiveEnvChecker", "RecordEpisodeStatistics",
+                    "ClipAction", "RecordVideo", "HumanRendering", "RenderCollection")
+
+
+def _first_env(env: Any):
+    return env.envs[0] if isinstance(env, gym.vector.VectorEnv) and getattr(env, "envs", None) else env
+
+
+def _check_built_as_registered(model: EnvModel, env: Any) -> None:
+    """The env must be the registered one the model describes: no wrapper that changes observations or
+    actions, no constructor arguments other than the registered defaults."""
+    one, w = _first_env(env), _first_env(env)
+    while isinstance(w, gym.Wrapper):
+        if type(w).__name__ not in NEUTRAL_WRAPPERS:
+            raise ValueError(f"env_model: the env is wrapped in {type(w).__name__}, which changes what "
+                             f"the model of {model.env_id} sees or does; give the unwrapped env (or a model "
+                             "of the wrapped one)")
+        w = w.env
+    spec = getattr(one, "spec", None)
+    if spec is not None and spec.id in gym.registry:
+        default = gym.registry[spec.id].kwargs or {}
+        changed = {k: v for k, v in (spec.kwargs or {}).items() if default.get(k, v) != v or k not in default}
+        if changed:
+            raise ValueError(f"env_model: the env was made with {changed}, but the model of {model.env_id} "
+                             "is for its registered defaults; build an EnvModel for these parameters")
+
+
 def check_model(model: EnvModel, env: Any) -> None:
-    """A ``TypeError``/``ValueError`` naming the mismatch when ``model`` does not fit ``env``'s spaces."""
+    """A ``TypeError``/``ValueError`` naming the mismatch when ``model`` does not fit ``env``: its spaces
+    (1-d ``Box`` es, the action dimension and bounds), the observation map's output shape, and the env
+    itself (:data:`NEUTRAL_WRAPPERS` only, the registered constructor arguments)."""
     vec = isinstance(env, gym.vector.VectorEnv)
     aspace = env.single_action_space if vec else env.action_space
     ospace = env.single_observation_space if vec else env.observation_space
     m = check_box_env(aspace, ospace, "env_model")
     if m != model.m:
         raise ValueError(f"env_model: the env has {m} actions but the model's system has m = {model.m}")
+    lo, hi = np.asarray(aspace.low, dtype=np.float64), np.asarray(aspace.high, dtype=np.float64)
+    if not (np.allclose(lo, model.action_low) and np.allclose(hi, model.action_high)):
+        raise ValueError(f"env_model: the env's action box [{lo.tolist()}, {hi.tolist()}] differs from the "
+                         f"model's [{list(model.action_low)}, {list(model.action_high)}] (a rescaling "
+                         "wrapper?)")
+    _check_built_as_registered(model, env)
     obs = torch.as_tensor(ospace.sample(), dtype=torch.float64).reshape(1, -1)
     x = model.state_from_obs(obs)
     if not isinstance(x, Tensor) or tuple(x.shape) != (1, model.n):

@@ -59,15 +59,16 @@ def env_id_of(env: Any) -> str | None:
 
 
 def check_box_env(action_space, observation_space, what: str) -> int:
-    """The action dimension ``m`` of an env whose action and observation spaces are 1-d ``Box`` es (of one
-    env, or batched ``(N, ·)`` of a vector env); else a ``TypeError`` naming the space."""
+    """The action dimension ``m`` of an env whose action and observation spaces (of one env: a vector env's
+    ``single_*_space``) are 1-d ``Box`` es; else a ``TypeError`` naming the space."""
     for name, sp in (("action", action_space), ("observation", observation_space)):
         if not isinstance(sp, gym.spaces.Box):
             raise TypeError(f"{what}: the {name} space must be a gymnasium.spaces.Box (continuous), got "
                             f"{type(sp).__name__}: {sp}")
-        if len(sp.shape) not in (1, 2):
-            raise TypeError(f"{what}: the {name} space must be 1-d (a flat vector), got shape {sp.shape}")
-    return int(action_space.shape[-1])
+        if len(sp.shape) != 1:
+            raise TypeError(f"{what}: the {name} space must be 1-d (a flat vector), got shape {sp.shape} "
+                            "(flatten it, e.g. with gymnasium.wrappers.FlattenObservation)")
+    return int(action_space.shape[0])
 
 
 def _make_vector(env: Any, N: int, T: int | None, env_kwargs: dict | None):
@@ -81,9 +82,9 @@ def _make_vector(env: Any, N: int, T: int | None, env_kwargs: dict | None):
                              "that registers it first)")
         make = partial(gym.make, env, **kw)
         return gym.vector.SyncVectorEnv([make] * N, autoreset_mode=AutoresetMode.NEXT_STEP), make, env
-    if kw:
-        raise ValueError("evaluate: 'max_episode_steps'/'task_kwargs' apply to a gymnasium id only; wrap the "
-                         "env instance yourself")
+    if env_kwargs:
+        raise ValueError("evaluate: 'task_kwargs' apply to a gymnasium id only (they go to gym.make); an env "
+                         "instance is run as it was built")
     if isinstance(env, gym.vector.VectorEnv):
         mode = env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         if mode == AutoresetMode.DISABLED or mode == "Disabled":
@@ -94,8 +95,8 @@ def _make_vector(env: Any, N: int, T: int | None, env_kwargs: dict | None):
 
 
 def _box(space, dtype, device) -> tuple[Tensor, Tensor]:
-    lo = np.asarray(space.low, dtype=np.float64).reshape(-1, space.shape[-1])[0]
-    hi = np.asarray(space.high, dtype=np.float64).reshape(-1, space.shape[-1])[0]
+    lo = np.asarray(space.low, dtype=np.float64)
+    hi = np.asarray(space.high, dtype=np.float64)
     return (torch.as_tensor(lo, dtype=dtype, device=device), torch.as_tensor(hi, dtype=dtype, device=device))
 
 
@@ -127,8 +128,8 @@ def _reset_policy(pol, done) -> str:
 
 
 def _acc(n: int, dtype, device) -> dict[str, Tensor]:
-    f = {k: torch.zeros(n, dtype=dtype, device=device) for k in ("returns", "effort", "iterations",
-                                                                   "nonconverged")}
+    f = {k: torch.zeros(n, dtype=torch.float64, device=device) for k in ("returns", "effort", "iterations",
+                                                                         "nonconverged")}
     f.update({k: torch.zeros(n, dtype=torch.bool, device=device) for k in
               ("success", "invalid", "terminated", "truncated")})
     f.update({k: torch.zeros(n, dtype=torch.int64, device=device) for k in ("violations", "length",
@@ -139,6 +140,7 @@ def _acc(n: int, dtype, device) -> dict[str, Tensor]:
 def _record_info(acc: dict, info, active: Tensor, dtype, device) -> None:
     if info is None:
         return
+    dtype = torch.float64
     af = active.to(dtype)
     it, cv = info.get("iterations"), info.get("converged")
     if it is not None:
@@ -146,6 +148,32 @@ def _record_info(acc: dict, info, active: Tensor, dtype, device) -> None:
         acc["solver_steps"] += active.long()
     if cv is not None:
         acc["nonconverged"] += af * (~cv.to(device=device, dtype=torch.bool)).to(dtype)
+
+
+def _success_of(infos: dict, n: int, device) -> tuple[Tensor, Tensor] | None:
+    """``(is_success, given)`` of a vector env's infos, or ``None`` when it has no ``is_success``."""
+    if "is_success" not in infos:
+        return None
+    s = torch.as_tensor(np.asarray(infos["is_success"], dtype=bool), device=device).reshape(n)
+    given = np.asarray(infos.get("_is_success", np.ones(n, dtype=bool)), dtype=bool)
+    return s, torch.as_tensor(given, device=device).reshape(n)
+
+
+def _record_success(acc: dict, infos: dict, active: Tensor, device, seen: Tensor) -> None:
+    """``info["is_success"]`` where given — and, in SAME_STEP mode, the ending step's ``final_info`` (the
+    ``infos`` of that step belong to the reset)."""
+    n = active.shape[0]
+    for src in (infos, infos.get("final_info")):
+        got = _success_of(src, n, device) if isinstance(src, dict) else None
+        if got is None:
+            continue
+        s, given = got
+        if src is not infos:
+            given = given & torch.as_tensor(np.asarray(infos.get("_final_info", np.ones(n, dtype=bool)),
+                                                       dtype=bool), device=device).reshape(n)
+        mask = given & active
+        acc["success"] = torch.where(mask, s, acc["success"])
+        seen |= mask
 
 
 def _env_step(venv, acc, a: Tensor, active: Tensor, box, dtype, device, succ_seen: Tensor):
@@ -161,18 +189,14 @@ def _env_step(venv, acc, a: Tensor, active: Tensor, box, dtype, device, succ_see
     obs, r, term, trunc, infos = venv.step(act_np)
     term_t = torch.as_tensor(np.asarray(term), device=device)
     trunc_t = torch.as_tensor(np.asarray(trunc), device=device)
-    acc["returns"] += torch.where(active, torch.as_tensor(np.asarray(r, dtype=np.float64), device=device)
-                                  .to(dtype), torch.zeros((), dtype=dtype, device=device))
-    acc["effort"] += active.to(dtype) * (applied * applied).sum(-1)
+    zero64 = torch.zeros((), dtype=torch.float64, device=device)
+    r64 = torch.as_tensor(np.asarray(r, dtype=np.float64), device=device)
+    acc["returns"] += torch.where(active, r64, zero64)
+    acc["effort"] += active.to(torch.float64) * (applied.double() ** 2).sum(-1)
     acc["length"] += active.long()
     bad = active & ~finite
     acc["invalid"] |= bad
-    if "is_success" in infos:
-        s = torch.as_tensor(np.asarray(infos["is_success"], dtype=bool), device=device)
-        mask = torch.as_tensor(np.asarray(infos.get("_is_success", np.ones_like(s.cpu().numpy()))),
-                               device=device) & active
-        acc["success"] = torch.where(mask, s, acc["success"])
-        succ_seen |= mask
+    _record_success(acc, infos, active, device, succ_seen)
     acc["terminated"] |= active & term_t
     acc["truncated"] |= active & (trunc_t | bad)
     return obs, active & (term_t | trunc_t | bad)
@@ -235,7 +259,7 @@ def _resolve_policy(policy: Any, env: Any, venv):
             raise ValueError(f"evaluate: unknown policy name {policy!r} (known: 'mpc')")
         from learning.model_mpc import ModelMPC
 
-        return ModelMPC(env if isinstance(env, str) else venv)
+        return ModelMPC(venv)  # checked against the env as built (its arguments, its wrappers)
     return as_policy(policy)
 
 
@@ -257,8 +281,10 @@ def evaluate_env(policy: Any, env: Any, *, num_envs: int = 16, seeds: list[int],
     from learning.evaluate import EvalResult, _policy_name, _progress_bar
 
     E = len(seeds)
-    N = num_envs if isinstance(env, str) else (env.num_envs if isinstance(env, gym.vector.VectorEnv) else 1)
-    N = min(N, E)
+    if isinstance(env, str):
+        N = min(num_envs, E)
+    else:  # an instance runs all its sub-envs (the seeds padded)
+        N = env.num_envs if isinstance(env, gym.vector.VectorEnv) else 1
     venv, make, eid = _make_vector(env, N, max_episode_steps, env_kwargs)
     m = check_box_env(venv.single_action_space, venv.single_observation_space, "evaluate")
     T = max_episode_steps or _spec_steps(venv)
@@ -273,7 +299,7 @@ def evaluate_env(policy: Any, env: Any, *, num_envs: int = 16, seeds: list[int],
             idx = seeds[i:i + N]
             k = len(idx)
             sub = venv
-            if k < N and make is not None:
+            if k < N and make is not None:  # an id: a smaller vector env for the last round
                 sub = gym.vector.SyncVectorEnv([make] * k, autoreset_mode=AutoresetMode.NEXT_STEP)
             elif k < N:
                 idx = idx + [idx[-1]] * (N - k)  # a given vector env cannot shrink: pad, drop after
@@ -309,13 +335,22 @@ def evaluate_env(policy: Any, env: Any, *, num_envs: int = 16, seeds: list[int],
         **out)
 
 
+def _time_limit(env) -> int | None:
+    """The ``max_episode_steps`` of an env: its spec's, else a ``TimeLimit`` wrapper's in its chain."""
+    T = getattr(getattr(env, "spec", None), "max_episode_steps", None)
+    while T is None and env is not None:
+        if isinstance(env, gym.wrappers.TimeLimit):
+            T = env._max_episode_steps
+        env = getattr(env, "env", None)
+    return T
+
+
 def _spec_steps(venv) -> int:
     envs = getattr(venv, "envs", None)
-    spec = getattr(envs[0], "spec", None) if envs else getattr(venv, "spec", None)
-    T = getattr(spec, "max_episode_steps", None)
+    T = _time_limit(envs[0]) if envs else _time_limit(venv)
     if T is None:
-        raise ValueError("evaluate: the env has no max_episode_steps (no TimeLimit in its spec): give "
-                         "'max_episode_steps'")
+        raise ValueError("evaluate: the env has no episode limit (no max_episode_steps in its spec, no "
+                         "TimeLimit wrapper): give 'max_episode_steps'")
     return int(T)
 
 

@@ -30,6 +30,12 @@ from learning.policies import Policy
 __all__ = ["ModelMPC"]
 
 
+def _int(v, name: str, minimum: int) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < minimum:
+        raise ValueError(f"ModelMPC: argument '{name}' must be an int >= {minimum}, got {v!r}")
+    return v
+
+
 class ModelMPC(Policy):
     """Multi-start iLQR MPC on an :class:`~learning.env_models.EnvModel` (module docstring).
 
@@ -47,12 +53,9 @@ class ModelMPC(Policy):
                  options: ILQROptions | None = None):
         self.model = env_model(model)
         md = self.model
-        self.horizon = int(md.horizon if horizon is None else horizon)
-        if self.horizon < 1:
-            raise ValueError(f"ModelMPC: argument 'horizon' must be a positive int, got {horizon!r}")
-        self.random_starts = int(md.random_starts if random_starts is None else random_starts)
-        if self.random_starts < 0:
-            raise ValueError(f"ModelMPC: argument 'random_starts' must be >= 0, got {random_starts!r}")
+        self.horizon = _int(md.horizon if horizon is None else horizon, "horizon", 1)
+        rs = md.random_starts if random_starts is None else random_starts
+        self.random_starts = _int(rs, "random_starts", 0)
         its = int(md.max_iter if max_iter is None else max_iter)
         self.options = options if options is not None else ILQROptions(**{**md.options, "max_iter": its})
         self.multistart = bool(multistart)
@@ -90,6 +93,10 @@ class ModelMPC(Policy):
 
     @torch.no_grad()
     def act(self, obs: Tensor) -> Tensor:
+        if not isinstance(obs, Tensor) or obs.dim() != 2 or not obs.is_floating_point():
+            got = f"{tuple(obs.shape)} {obs.dtype}" if isinstance(obs, Tensor) else type(obs).__name__
+            raise ValueError(f"ModelMPC.act: argument 'obs' must be a floating tensor (N, obs_dim), got "
+                             f"{got}")
         x = self.model.state_from_obs(obs)
         lo, hi = self._limits(x)
         U = self._guesses(x, lo, hi)
@@ -102,8 +109,10 @@ class ModelMPC(Policy):
         return sol.u[:, 0].to(dtype=obs.dtype)
 
     def reset(self, done: Tensor | None = None) -> None:
+        if done is not None and (not isinstance(done, Tensor) or done.dtype != torch.bool or done.dim() != 1):
+            raise TypeError("ModelMPC.reset: argument 'done' must be None or a bool tensor (N,)")
         if done is None or self._plan is None or done.shape != self._plan.shape[:1]:
-            self._plan = None
+            self._plan = None  # all, or a batch of another size: every plan starts afresh
         else:
             self._plan = torch.where(done.to(self._plan.device)[:, None, None], 0.0, self._plan)
         self._info = None

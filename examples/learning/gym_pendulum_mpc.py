@@ -29,6 +29,7 @@ import torch
 
 from learning import evaluate
 from learning.model_mpc import ModelMPC
+from learning.zoo import zoo_best
 
 
 def _from_4_degrees(steps: int, horizon: int) -> dict:
@@ -62,7 +63,8 @@ def main(episodes: int = 10, steps: int | None = None, horizon: int = 40, hold_s
                       "nonconverged": float(np.nanmean(r.nonconverged)),
                       "ms_per_step": float(np.median(r.step_ms))}
     near = _from_4_degrees(hold_steps, 40)
-    return {**runs, "zoo_best": {"algo": "td3", "return": -151.855}, "from_4_degrees": near,
+    algo, best = zoo_best("Pendulum-v1")
+    return {**runs, "zoo_best": {"algo": algo, "return": best}, "from_4_degrees": near,
             "checks": {"holds_near_upright": near["multistart_max_angle_deg"] < 10.0,
                        "single_start_swings":
                        near["single_start_plan_cost"] > 100 * near["multistart_plan_cost"],

@@ -141,3 +141,21 @@ def test_bad_guesses_are_refused():
         ilqr_multistart(p, torch.zeros(2, 3, H, 1, dtype=torch.float32))
     with pytest.raises(ValueError, match="no guess"):
         ilqr_multistart(p, torch.zeros(2, 0, H, 1, dtype=D))
+
+
+def test_a_cost_batched_over_the_elements_stays_with_its_element():
+    """Per-element targets (a periodic cost batched over (*B,)): every guess of element b is scored with b's
+    target — the guesses run as a leading batch dim, so (*B,)-batched data never lines up with them."""
+    xr = torch.tensor([[math.pi, 0.0], [0.0, 0.0], [1.0, 0.0]], dtype=D)[:, None, :]
+    base = QuadraticCost(Q=torch.eye(2, dtype=D), R=0.1 * torch.eye(1, dtype=D), x_ref=xr)
+    cost = PeriodicQuadraticCost(base, torch.tensor([True, False]))
+    x0 = torch.full((3, 2), 0.5, dtype=D)
+    lo, hi = _limits()
+    p = ILQRProblem(_pendulum(), cost, x0, 8, u_lower=lo, u_upper=hi)
+    U = guesses((3,), 8, lo, hi)
+    ms = ilqr_multistart(p, U, options=OPTS)
+    for k in range(U.shape[1]):
+        torch.testing.assert_close(ms.costs[:, k], ilqr(p, U[:, k], options=OPTS).cost)
+    assert ms.costs[0, 0] != ms.costs[1, 0]  # a different target, a different cost
+    with pytest.raises(ValueError, match="broadcast"):
+        ilqr_multistart(p, torch.zeros(2, 4, 8, 1, dtype=D))

@@ -15,6 +15,26 @@ from learning.evaluate_env import is_foreign
 from learning.model_mpc import ModelMPC
 
 
+class _Tiny(gym.Env):
+    """An unregistered env: ends after ``ends`` steps with ``info["is_success"] = (action > 0)``."""
+
+    def __init__(self, obs_shape=(2,), ends=1):
+        self.observation_space = gym.spaces.Box(-1.0, 1.0, obs_shape)
+        self.action_space = gym.spaces.Box(-1.0, 1.0, (1,))
+        self.ends, self.t = ends, 0
+
+    def reset(self, *, seed=None, options=None):
+        super().reset(seed=seed)
+        self.t = 0
+        return np.zeros(self.observation_space.shape, dtype=np.float32), {}
+
+    def step(self, a):
+        self.t += 1
+        done = self.t >= self.ends
+        info = {"is_success": bool(a[0] > 0)} if done else {}
+        return np.zeros(self.observation_space.shape, dtype=np.float32), 1.0, done, False, info
+
+
 def _pd(o):
     """A torque law on Pendulum-v1's observation (saturates often: clipping is exercised)."""
     return -3.0 * o[:, 2:3] - 4.0 * o[:, 1:2]
@@ -103,8 +123,12 @@ def test_bad_envs_give_clear_errors():
                                     autoreset_mode=gym.vector.AutoresetMode.DISABLED)
     with pytest.raises(ValueError, match="DISABLED"):
         evaluate(_pd, venv, seeds=[0], progress=False)
-    with pytest.raises(ValueError, match="max_episode_steps"):
-        evaluate(_pd, gym.make("Pendulum-v1"), seeds=[0], max_episode_steps=5, progress=False)
+    with pytest.raises(ValueError, match="task_kwargs"):
+        evaluate(_pd, gym.make("Pendulum-v1"), seeds=[0], task_kwargs={"g": 2.0}, progress=False)
+    with pytest.raises(TypeError, match="1-d"):
+        evaluate(lambda o: 0, _Tiny(obs_shape=(2, 2)), seeds=[0], max_episode_steps=3, progress=False)
+    with pytest.raises(ValueError, match="no episode limit"):
+        evaluate(lambda o: 0, _Tiny(), seeds=[0], progress=False)
     assert is_foreign("Pendulum-v1") and not is_foreign("PendulumSwingUp")
     assert not is_foreign("liecontrol/PendulumSwingUp-v0") and not is_foreign("NoSuchEnv-v9")
 
@@ -143,3 +167,39 @@ def test_mpc_on_pendulum_v1_holds_a_start_near_upright():
     a = pol.act(o)
     assert -2.0 <= float(a) < 0.0  # brakes (pushes back towards upright), no swing
     assert bool(pol.info()["converged"].all())
+
+
+def test_unregistered_envs_vector_envs_and_same_step_success():
+    """An env instance without a spec: its TimeLimit or max_episode_steps bounds the episode; a VectorEnv
+    with more sub-envs than seeds is padded; SAME_STEP's ending info (final_info) gives the success."""
+    one = evaluate(lambda o: torch.ones(o.shape[0], 1), gym.wrappers.TimeLimit(_Tiny(ends=9), 4), seeds=[0],
+                   progress=False)
+    assert one.length.tolist() == [4] and one.truncated.all()
+    short = evaluate(lambda o: torch.ones(o.shape[0], 1), _Tiny(ends=9), seeds=[0], max_episode_steps=2,
+                     progress=False)
+    assert short.length.tolist() == [2]
+    for mode in (gym.vector.AutoresetMode.NEXT_STEP, gym.vector.AutoresetMode.SAME_STEP):
+        venv = gym.vector.SyncVectorEnv([_Tiny] * 4, autoreset_mode=mode)
+        r = evaluate(lambda o: torch.tensor([[1.0], [-1.0], [1.0], [-1.0]])[: o.shape[0]], venv, seeds=[0, 1],
+                     max_episode_steps=5, progress=False, timing_batch1=False)
+        assert r.success.tolist() == [True, False] and r.meta["success_defined"], mode
+        assert r.length.tolist() == [1, 1] and r.summary()["success_rate"] == 0.5
+
+
+def test_float32_policy_dtype_still_sums_returns_in_float64():
+    def push(o):
+        return torch.full((o.shape[0], 1), 0.3, dtype=o.dtype)
+
+    r = evaluate(push, "MountainCarContinuous-v0", seeds=[0], dtype=torch.float32, progress=False,
+                 timing_batch1=False)
+    assert r.returns[0] == _hand_loop(push, "MountainCarContinuous-v0", 0)[0]
+
+
+def test_the_model_mpc_refuses_an_env_it_does_not_describe():
+    with pytest.raises(ValueError, match="registered defaults"):
+        evaluate("mpc", "Pendulum-v1", seeds=[0], task_kwargs={"g": 2.0}, progress=False)
+    with pytest.raises(ValueError, match="action box"):
+        ModelMPC(gym.wrappers.RescaleAction(gym.make("Pendulum-v1"), -1.0, 1.0))
+    with pytest.raises(ValueError, match="NormalizeObservation"):
+        ModelMPC(gym.wrappers.NormalizeObservation(gym.make("Pendulum-v1")))
+    assert ModelMPC(gym.wrappers.RecordEpisodeStatistics(gym.make("Pendulum-v1"))).model.m == 1
