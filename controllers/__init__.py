@@ -26,6 +26,7 @@ Submodules (loaded on first use, ``controllers.riccati``):
 ``multistart`` iLQR from K initial guesses at once (zero, bang, random, the closed-loop LQR "hold"), the
                best certified plan kept
 ``sampling``   MPPI and predictive sampling, batched and derivative-free; ``SamplingMPC``
+``linear_mpc`` linear MPC about the current state: one linearization, one Riccati recursion, first control
 ``manifold_mpc`` error-state MPC on ``torchlie`` manifolds (seed 003 Algorithm 1 and its iterated variant)
 ``ik``         damped least squares and batched IK
 ``planar_ik``  planar arms (§4-5): FK/Jacobians, Gauss-Newton IK (position, orientation, object frame),
@@ -46,7 +47,8 @@ import importlib
 
 __all__ = ["dynamics", "costs", "problem", "lifted", "riccati", "implicit", "basis", "sdf", "ilqr",
            "ilqr_lifted", "task_costs", "task_costs_ext", "lqt_cookbook", "boxqp", "mpc", "multistart",
-           "sampling", "manifold_mpc", "ik", "planar_ik", "impedance", "optim", "ergodic", "systems"]
+           "sampling", "linear_mpc", "manifold_mpc", "ik", "planar_ik", "impedance", "optim", "ergodic",
+           "systems"]
 
 
 def __getattr__(name: str):

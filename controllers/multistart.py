@@ -28,7 +28,7 @@ from controllers.costs import QuadraticCost
 from controllers.ilqr import ILQRMethod, ILQROptions, ILQRProblem, ILQRSolution, ilqr
 from controllers.problem import GradMode, SolverStatus
 
-__all__ = ["MultiStartSolution", "ilqr_multistart", "select_best", "guesses", "lqr_guess"]
+__all__ = ["MultiStartSolution", "ilqr_multistart", "select_best", "guesses", "lqr_guess", "quadratic_parts"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -156,7 +156,7 @@ def guesses(batch_shape: tuple[int, ...] | torch.Size, horizon: int, lower: Tens
     return torch.cat(parts, -3)
 
 
-def _quadratic_parts(cost):
+def quadratic_parts(cost):
     """``(Q (T+1|1, n, n), R (T|1, m, m), x_ref (n,), u_ref (m,), wrap)`` of a quadratic cost (or a periodic
     one: ``wrap`` maps a state to its branch nearest the target), ``None`` for any other cost or one with
     batch dims or a time-varying target."""
@@ -187,7 +187,7 @@ def lqr_guess(system, cost, x0: Tensor, horizon: int, lower: Tensor | None = Non
     """
     from controllers.dynamics import jacobians
 
-    parts = _quadratic_parts(cost)
+    parts = quadratic_parts(cost)
     if parts is None:
         return None
     Q, R, xr, ur, wrap = (v.to(x0.dtype) if isinstance(v, Tensor) else v for v in parts)

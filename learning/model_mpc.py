@@ -27,7 +27,7 @@ from controllers.multistart import guesses, ilqr_multistart, lqr_guess
 from learning.env_models import EnvModel, env_model
 from learning.policies import Policy
 
-__all__ = ["ModelMPC"]
+__all__ = ["ModelMPC", "LinearModelMPC"]
 
 
 def _int(v, name: str, minimum: int) -> int:
@@ -130,3 +130,55 @@ class ModelMPC(Policy):
         return (f"ModelMPC({self.model.env_id}, horizon={self.horizon}, random_starts={self.random_starts}, "
                 f"multistart={self.multistart})")
 
+
+
+class LinearModelMPC(Policy):
+    """Linear MPC on an :class:`~learning.env_models.EnvModel` (:mod:`controllers.linear_mpc`): each step the
+    model is linearized once at the current state and the last action (one batched ``jacobian`` call — on a
+    MuJoCo model one rollout call for all environments), the horizon's LQ problem is solved by one backward
+    Riccati recursion, and its first control, clipped to the action box, is the action.  No iterations, so
+    no certificate: :meth:`info` reports none.  For balancing tasks near a trim point (InvertedPendulum)
+    this is the MPC at the cost of a handful of model steps; away from one, use :class:`ModelMPC`.
+
+    The model's cost must be quadratic about a fixed target (a ``QuadraticCost`` or a periodic one), else
+    a ``ValueError``.
+    """
+
+    def __init__(self, model: EnvModel | Any, *, horizon: int | None = None):
+        from controllers.multistart import quadratic_parts
+
+        self.model = env_model(model)
+        self.horizon = _int(self.model.horizon if horizon is None else horizon, "horizon", 1)
+        parts = quadratic_parts(self.model.cost(self.horizon, dtype=torch.float64))
+        if parts is None:
+            raise ValueError(f"LinearModelMPC: the cost of {self.model.env_id} is not quadratic about a "
+                             "fixed target; use ModelMPC")
+        self._parts = parts
+        self._u: Tensor | None = None
+
+    def act(self, obs: Tensor) -> Tensor:
+        from controllers.linear_mpc import linear_mpc_action
+
+        x = self.model.state_from_obs(obs)
+        Q, R, xr, ur, wrap = (v.to(device=x.device, dtype=x.dtype) if isinstance(v, Tensor) else v
+                              for v in self._parts)
+        if wrap is not None:
+            x = wrap(x)
+        N, m = x.shape[0], self.model.m
+        if self._u is None or self._u.shape[0] != N or self._u.dtype != x.dtype:
+            self._u = ur.expand(N, m).clone()
+        kw = dict(dtype=x.dtype, device=x.device)
+        lo, hi = torch.tensor(self.model.action_low, **kw), torch.tensor(self.model.action_high, **kw)
+        with torch.no_grad():
+            u = linear_mpc_action(self.model.system, x, self._u, Q, R, xr, ur, self.horizon, lo, hi)
+        self._u = torch.where(torch.isfinite(u), u, ur.expand(N, m))
+        return u.to(obs.dtype)
+
+    def reset(self, done: Tensor | None = None) -> None:
+        if done is None or self._u is None or done.shape != self._u.shape[:1]:
+            self._u = None
+        else:
+            self._u = torch.where(done.to(self._u.device)[:, None], 0.0, self._u)
+
+    def info(self) -> None:
+        return None

@@ -203,3 +203,23 @@ def test_the_model_mpc_refuses_an_env_it_does_not_describe():
     with pytest.raises(ValueError, match="NormalizeObservation"):
         ModelMPC(gym.wrappers.NormalizeObservation(gym.make("Pendulum-v1")))
     assert ModelMPC(gym.wrappers.RecordEpisodeStatistics(gym.make("Pendulum-v1"))).model.m == 1
+
+
+def test_linear_model_mpc_holds_pendulum_v1_near_upright():
+    """The linear MPC (one linearization a step) on the Pendulum-v1 model, its periodic cost wrapped: from
+    10 degrees either side of upright (on both branches of the angle cut) it holds the pendulum up."""
+    from learning.model_mpc import LinearModelMPC
+
+    pol = LinearModelMPC("Pendulum-v1", horizon=30)
+    sysm = pol.model.system
+    x = torch.tensor([[math.pi - 0.17, 0.0], [-math.pi + 0.17, 0.0]], dtype=torch.float64)
+    worst = 0.0
+    for _ in range(60):
+        obs = torch.stack([-torch.cos(x[:, 0]), -torch.sin(x[:, 0]), x[:, 1]], -1)
+        u = pol.act(obs)
+        assert bool(((u >= -2) & (u <= 2)).all())
+        x = sysm.step(x, u)
+        worst = max(worst, float(torch.remainder(x[:, 0], 2 * math.pi).sub(math.pi).abs().max()))
+    assert worst < 0.2 and pol.info() is None
+    with pytest.raises(ValueError, match="not quadratic"):
+        LinearModelMPC("MountainCarContinuous-v0")
