@@ -17,6 +17,11 @@ The shipped models:
                           ``φ² + 0.1 ω² + 0.001 u²`` with φ wrapped (:class:`~controllers.costs.
                           PeriodicQuadraticCost`), the last state's term 10 times (a value-to-go
                           stand-in); horizon 40.  Not modelled: the env clips ``|ω|`` to 8 rad/s.
+``InvertedPendulum-v5``,  :class:`controllers.systems.MujocoSystem` of the env's own MjModel (its
+``InvertedDoublePend``    ``frame_skip``, RK4); costs from the rewards (``learning._mujoco_models``: a
+``ulum-v5``, ``Reacher``  quadratic about upright; the reward's penalties with a tip-height barrier in
+``-v5``                   place of the alive bonus and the LQR cost-to-go at upright; the fingertip
+                          distance, smoothed, and ``‖a‖²``).
 ``MountainCarContinuous``  the env's dynamics exactly (:class:`learning._mountain_car.MountainCar`: clips,
 ``-v0``                   the inelastic left wall); cost = the reward's ``0.1 u²`` plus a terminal energy
                           deficit in place of the sparse +100 (:class:`~learning._mountain_car.
@@ -55,7 +60,8 @@ class EnvModel:
             u (*B, T, m)) -> (*B,)``, :mod:`controllers.costs`).
         state_from_obs: ``(N, obs_dim) -> (N, n)`` observations to states (dtype and device kept).
         action_low, action_high: the env's action box ``(m,)``.
-        horizon, max_iter, random_starts: the planner's defaults (:class:`learning.model_mpc.ModelMPC`).
+        horizon, max_iter, random_starts, multistart: the planner's defaults
+            (:class:`learning.model_mpc.ModelMPC`; ``multistart=False``: one start, the previous plan).
         knows: what the MPC knows that an RL agent does not.
         options: ``ILQROptions`` overrides (e.g. tolerances for finite-difference Jacobians).
     """
@@ -69,6 +75,7 @@ class EnvModel:
     horizon: int = 30
     max_iter: int = 20
     random_starts: int = 0
+    multistart: bool = True
     knows: str = ""
     options: dict[str, Any] = field(default_factory=dict)
 
@@ -201,3 +208,17 @@ def _mountain_car_continuous(env: Any = None) -> EnvModel:
 
 
 register_env_model("MountainCarContinuous-v0", _mountain_car_continuous)
+
+
+def _mujoco(name: str):
+    def factory(env: Any = None) -> EnvModel:
+        from learning import _mujoco_models
+
+        return getattr(_mujoco_models, name)(env)
+
+    return factory
+
+
+register_env_model("InvertedPendulum-v5", _mujoco("inverted_pendulum_model"))
+register_env_model("InvertedDoublePendulum-v5", _mujoco("inverted_double_pendulum_model"))
+register_env_model("Reacher-v5", _mujoco("reacher_model"))

@@ -43,13 +43,13 @@ class ModelMPC(Policy):
         model: an :class:`EnvModel`, or a gymnasium id / ``Env`` / ``VectorEnv`` with a registered model.
         horizon, max_iter, random_starts: override the model's defaults.
         multistart: ``False`` solves from the previous plan only (zero at an episode's start): the plain
-            warm-started MPC, for comparison.
+            warm-started MPC (default: the model's ``multistart``).
         seed: of the generator of the random starts.
         options: an :class:`~controllers.ilqr.ILQROptions` (default: the model's, ``max_iter`` set).
     """
 
     def __init__(self, model: EnvModel | Any, *, horizon: int | None = None, max_iter: int | None = None,
-                 random_starts: int | None = None, multistart: bool = True, seed: int = 0,
+                 random_starts: int | None = None, multistart: bool | None = None, seed: int = 0,
                  options: ILQROptions | None = None):
         self.model = env_model(model)
         md = self.model
@@ -58,7 +58,7 @@ class ModelMPC(Policy):
         self.random_starts = _int(rs, "random_starts", 0)
         its = int(md.max_iter if max_iter is None else max_iter)
         self.options = options if options is not None else ILQROptions(**{**md.options, "max_iter": its})
-        self.multistart = bool(multistart)
+        self.multistart = bool(md.multistart if multistart is None else multistart)
         self.seed = int(seed)
         self._gen: torch.Generator | None = None
         self._plan: Tensor | None = None

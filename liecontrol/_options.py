@@ -252,6 +252,22 @@ def bench_envs(p: argparse.ArgumentParser) -> None:
     p.set_defaults(_check=_check_devices)
 
 
+GYM_BENCH_ENVS = ("InvertedPendulum-v5", "Reacher-v5")
+
+
+def bench_gym(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--envs", nargs="+", choices=GYM_BENCH_ENVS, default=list(GYM_BENCH_ENVS),
+                   help="gymnasium MuJoCo envs (their registered models)")
+    p.add_argument("--policies", nargs="+", choices=("linear", "ilqr"), default=["linear", "ilqr"],
+                   help="linear: one linearization a step (LinearModelMPC); ilqr: ModelMPC")
+    p.add_argument("--batch", type=positive_int, nargs="+", default=[1, 64], metavar="N",
+                   help="environments stepped in lockstep (one batched policy call each step)")
+    p.add_argument("--steps", type=positive_int, default=50, metavar="N", help="steps of each episode timed")
+    p.add_argument("--horizon", type=positive_int, default=None, metavar="T",
+                   help="planning horizon (default: the model's)")
+    _common(p)
+
+
 def bench_sampling(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=positive_int, default=256, metavar="K", help="samples per iteration")
     p.add_argument("--horizon", type=positive_int, default=40, metavar="T", help="planning horizon")
@@ -772,6 +788,9 @@ COMMANDS: tuple[tuple[tuple[str, ...], object, str, str], ...] = (
      "iLQR swing-ups vs mpc.pytorch box-DDP, pypose MPC and crocoddyl"),
     (("bench", "envs"), bench_envs, "liecontrol.bench.envs",
      "batched environment steps per second vs gymnasium SyncVectorEnv and EnvPool"),
+    (("bench", "gym"), bench_gym, "liecontrol.bench.gym_mpc",
+     "the MPC step on gymnasium's MuJoCo envs (linear MPC, iLQR on the MuJoCo model) against issue 27's "
+     "targets"),
     (("bench", "sampling"), bench_sampling, "liecontrol.bench.sampling",
      "MPPI and predictive sampling (batched) vs pytorch_mppi on a pendulum swing-up: plan cost, time and "
      "return"),
