@@ -91,10 +91,15 @@ class Linearization(NamedTuple):
     terms: Tensor  # (*B,) max of the gradient's terms
 
 
-def kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor) -> Tensor:
-    """The relative KKT residual ``max|pg| / (max terms + c · ‖u‖∞)`` (:attr:`ILQROptions.tol_kkt`);
-    ``curv`` is ``c``, the largest diagonal entry of the Riccati ``Q_uu,t`` (0: the terms alone, stricter)."""
-    return pg / (terms + curv * umax).clamp_min(torch.finfo(pg.dtype).tiny)
+def kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor, floor: float = 0.0) -> Tensor:
+    """The relative KKT residual ``max|pg| / max(max terms + c · ‖u‖∞, c · floor)``
+    (:attr:`ILQROptions.tol_kkt`); ``curv`` is ``c``, the largest diagonal entry of the Riccati ``Q_uu,t``
+    (0: the terms alone, stricter).  ``floor = tol / tol_kkt`` makes a residual whose Newton step
+    ``|pg| / c`` is below the negligible-step tolerance ``tol`` pass: at an optimum where the terms and the
+    controls are all ~0 (a pendulum held exactly upright) the ratio would otherwise be rounding over
+    rounding."""
+    scale = torch.maximum(terms + curv * umax, curv * floor)
+    return pg / scale.clamp_min(torch.finfo(pg.dtype).tiny)
 
 
 def pick(v: Tensor, idx: Tensor) -> Tensor:
@@ -138,7 +143,7 @@ def stop_checks(it: Iterate, lin: Linearization, k: Tensor, curv: Tensor | None,
     """After the backward pass: the certificate with its curvature (``curv``; None for the batch form: the
     terms alone), and Δ_min of Algorithms 4-5 — a negligible step is converged if certified, else stalled."""
     cert = kkt_relative(lin.pg, lin.terms, torch.zeros_like(lin.pg) if curv is None else curv,
-                        lin.umax) <= s.tol_kkt
+                        lin.umax, s.tol / s.tol_kkt) <= s.tol_kkt
     done = it.active & (it.ntiny >= 1) & cert
     reason = torch.where(done, int(Reason.CONVERGED), it.reason)
     active = it.active & ~done

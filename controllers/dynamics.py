@@ -266,11 +266,18 @@ def step_all(d: System, x: torch.Tensor, u: torch.Tensor, t0: int = 0) -> torch.
 
 
 def rollout(d: System, x0: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-    """Simulate ``x (*B, T+1, n)`` from ``x0 (*B, n)`` and open-loop controls ``u (*B, T, m)``."""
+    """Simulate ``x (*B, T+1, n)`` from ``x0 (*B, n)`` and open-loop controls ``u (*B, T, m)``.
+
+    A time-invariant system with a ``rollout_states(x0, u)`` method (a simulator that runs a whole control
+    sequence in one call, e.g. :class:`~controllers.systems.mujoco_system.MujocoSystem`) runs it there."""
+    whole = getattr(d, "rollout_states", None)
+    if callable(whole) and getattr(d, "time_invariant", False) and u.shape[-2] > 0:
+        bs = broadcast_shapes(x0.shape[:-1], u.shape[:-2])
+        return whole(x0.expand(*bs, x0.shape[-1]), u.expand(*bs, *u.shape[-2:]))
     xs = [x0]
     for t in range(u.shape[-2]):
         xs.append(d.step(xs[-1], u[..., t, :], t))
-    shape = broadcast_shapes(*[v.shape for v in xs])
+    shape = broadcast_shapes(*[v.shape for v in xs], (*u.shape[:-2], x0.shape[-1]))  # u's batch too, T = 0
     return torch.stack([v.expand(shape) for v in xs], dim=-2)
 
 

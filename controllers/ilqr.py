@@ -127,7 +127,11 @@ class ILQROptions:
             ``|∇J|∞ = 4e-11``, ratio 1.8e-6 at an optimum; ``R = 1e-10``: most starts), and in floating
             point the rounding of ``u`` alone moves the gradient by ``~ Q_uu ε ‖u‖``.  The ratio is
             a backward error (that of a linear system, ``‖r‖ / (‖b‖ + ‖H‖ ‖x‖)``): invariant to scaling the
-            cost, attainable in floating point, and without ``R`` in it; the Riccati curvature (bounded
+            cost, attainable in floating point, and without ``R`` in it; the scale is at least
+            ``c · tol / tol_kkt``, so a residual whose Newton step ``|∇J| / c`` is below ``tol`` passes (at an
+            optimum where the terms and the controls are ~0, a pendulum held exactly upright, the ratio
+            was rounding over rounding: it reported the optimal hold STALLED, and a multi-start then
+            chose a certified full swing over it); the Riccati curvature (bounded
             for a stabilizable linearization) rather than the open-loop Hessian, whose norm grows like
             ``‖A‖^{2T}`` on an unstable system (1e18 on the cart-pole benchmark).  Default ``1e-6``
             (float64) or ``1e-3`` (lower precisions).
@@ -554,9 +558,13 @@ def _eager_iteration(dyn, cost, x0, it: Iterate, lo, hi, lo_tm, hi_tm, k_warm, b
     dhi = None if hi is None else hi_tm - lin.u
     mu, dmu, reason, active = it.mu, it.dmu, it.reason, it.active
     model = (lin.A, lin.B, lin.gx, lin.gu, lin.Hxx, lin.Hux, lin.Huu)
+    first = True
     while True:
         if method is ILQRMethod.RECURSIVE:
-            bw = backward_pass(*model, mu, dlo, dhi, k_warm, bs, cc)
+            # compiled: the first pass may run two limited controls as a program too (rerun eagerly, warm
+            # started, where its one-step box QPs leave an element uncertified); μ's retries run eagerly
+            bw = backward_pass(*model, mu, dlo, dhi, k_warm, bs, cc, try_two=first)
+            first = False
             K, k, ok, dV1, dV2, curv = bw.K, bw.k, bw.ok, bw.dV1, bw.dV2, bw.curv
         else:
             k, ok, dV1, dV2 = _batch_step(*model, mu, dlo, dhi, k_warm, bs)
@@ -653,7 +661,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     dhi = None if hi is None else hi_tm - lin.u
     bw = backward_pass(lin.A, lin.B, lin.gx, lin.gu, lin.Hxx, lin.Hux, lin.Huu, mu, dlo, dhi, None, bs, cc,
                        try_two=True)
-    kkt = kkt_relative(lin.pg, lin.terms, bw.curv, lin.umax).expand(bs)
+    kkt = kkt_relative(lin.pg, lin.terms, bw.curv, lin.umax, tol / tol_kkt).expand(bs)
     certified = kkt <= tol_kkt
     iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (
         reason == int(Reason.STALLED))

@@ -8,6 +8,7 @@ on a torque-limited arm: its inner box QP returned a zero step with NO_DESCENT, 
 negligible step.
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -285,3 +286,27 @@ def test_second_order_check_refuses_what_it_cannot_decide():
     pend = ILQRProblem(Pendulum(dt=0.05), pend_cost, torch.zeros(1, 2, dtype=D), 5)
     with torch.inference_mode(), pytest.raises(ValueError, match="inference_mode"):
         ilqr(pend, grad="none", options=ILQROptions(second_order=True))
+
+
+def test_an_optimum_where_everything_is_zero_is_certified():
+    """A pendulum held exactly upright (and 1e-9 off): the plan is zero controls, the gradient and its
+    terms are rounding, the controls 0 — the relative residual alone was 0/0-like and reported STALLED
+    (and a multi-start then preferred a certified full swing).  The scale's floor ``c · tol / tol_kkt``
+    certifies it: the Newton step the residual implies is below ``tol``."""
+    from controllers.multistart import guesses, ilqr_multistart
+
+    Q = torch.diag(torch.tensor([1.0, 0.1], dtype=D))
+    cost = QuadraticCost(Q=Q, R=torch.tensor([[0.01]], dtype=D), x_ref=torch.tensor([math.pi, 0.0], dtype=D))
+    x0 = torch.tensor([[math.pi, 0.0], [math.pi + 1e-9, 0.0]], dtype=D)
+    p = ILQRProblem(Pendulum(), cost, x0, 20, u_lower=-2.0, u_upper=2.0)
+    for method in ("recursive", "batch"):
+        sol = ilqr(p, method=method, grad="none", options=ILQROptions(max_iter=10))
+        assert sol.status.reason_names() == ["CONVERGED"] * 2
+        assert sol.u.abs().max() < 1e-6 and sol.cost.max() < 1e-15
+    lo, hi = torch.tensor([-2.0], dtype=D), torch.tensor([2.0], dtype=D)
+    best = ilqr_multistart(p, guesses((2,), 20, lo, hi), options=ILQROptions(max_iter=30)).best
+    assert best.cost.max() < 1e-15  # the hold, not a certified swing
+    # a genuinely non-stationary point is still not certified (the floor is a Newton step below tol)
+    far = ilqr(dataclasses.replace(p, x0=torch.tensor([[2.0, 0.0]], dtype=D)), grad="none",
+               options=ILQROptions(mu_init=1e12, mu_max=1e14, max_iter=2))
+    assert far.status.reason_names() != ["CONVERGED"]

@@ -329,3 +329,36 @@ def test_a_final_pass_whose_box_qp_the_program_cannot_certify_is_run_again_eager
     assert calls and all("m=2;bounded=True" in k for k in calls)
     assert (comp.status.reason == int(Reason.CONVERGED)).all()
     _assert_same(eager, comp)
+
+
+@dataclasses.dataclass(frozen=True)
+class _AutogradSkater(Skater):
+    """The skater without its analytic Jacobian: no iteration program serves it (its Jacobians come from
+    autograd), so each iteration runs eagerly around compiled sweeps."""
+
+    jacobian = None
+
+
+def test_an_eager_iteration_runs_its_first_backward_pass_as_a_program_and_equals_the_eager_loop(monkeypatch):
+    """Two limited controls in an iteration that is not one program (a MuJoCo model, a system without
+    analytic Jacobians): the iteration's first backward pass is a program too (its box QPs box_qp's first
+    step, rerun eagerly where one is uncertified); μ's retries run eagerly.  Same plan, statuses and
+    iteration counts as the eager loop."""
+    import controllers._ilqr_sweeps as sw
+
+    real, keys = sw.run_flat, []
+
+    def spy(name, key, fn, args, layout, bs, out_lead):
+        keys.append(name)
+        return real(name, key, fn, args, layout, bs, out_lead)
+
+    monkeypatch.setattr(sw, "run_flat", spy)
+    p = dataclasses.replace(_skater(4), dynamics=_AutogradSkater())
+    eager = ilqr(p, grad="none", options=ILQROptions(max_iter=40))
+    assert not keys
+    comp = ilqr(p, grad="none", options=ILQROptions(max_iter=40, compile=True))
+    assert (eager.status.reason == int(Reason.CONVERGED)).all()
+    assert "ilqr_iteration" not in keys
+    # one pass per iteration and the final one (μ's retries, if any, are eager)
+    assert keys.count("ilqr_backward") >= int(comp.status.iterations.max()) + 1
+    _assert_same(eager, comp)

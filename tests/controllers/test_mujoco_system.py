@@ -359,3 +359,161 @@ def test_bad_input_raises_clear_errors(pendulum):
         MujocoSystem.from_env(gym.make("CartPole-v1"))
     with pytest.raises(ValueError, match="fd_eps"):
         MujocoSystem(env.unwrapped.model, fd_eps=0.0)
+
+
+# ------------------------------------------------------------------------------------------------------
+# the mjd_transitionFD fast path (jacobian_method)
+# ------------------------------------------------------------------------------------------------------
+
+
+def _euler_copy(name: str):
+    m = copy.deepcopy(gym.make(name).unwrapped.model)
+    m.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    return m
+
+
+@pytest.mark.parametrize("frame_skip", [1, 3])
+def test_transition_fd_path_equals_rollout_path(frame_skip):
+    """Chained per-substep mjd_transitionFD == differences of whole frame_skip rollouts, to FD accuracy,
+    on a hinge model and on the free/ball model (tangent coordinates, contacts), controls on a limit too."""
+    m = _euler_copy("InvertedDoublePendulum-v5")
+    g = torch.Generator().manual_seed(3)
+    x = torch.randn(6, m.nq + m.nv, generator=g, dtype=F64) * 0.2
+    u = torch.rand(6, m.nu, generator=g, dtype=F64) - 0.5
+    u[0], u[1] = 1.0, -1.0  # on the ctrlrange limits: one-sided differences inside the range, both paths
+    mb, xb = _box_ball()
+    ub = torch.tensor([[0.3], [-1.0]], dtype=F64)
+    for model, xs, us in ((m, x, u), (mb, xb.expand(2, -1), ub)):
+        fast = MujocoSystem(model, frame_skip=frame_skip, jacobian_method="transition_fd")
+        slow = MujocoSystem(model, frame_skip=frame_skip, jacobian_method="rollout")
+        assert fast.uses_transition_fd() and not slow.uses_transition_fd()
+        (A1, B1), (A2, B2) = fast.jacobian(xs, us), slow.jacobian(xs, us)
+        assert A1.shape == A2.shape == (xs.shape[0], fast.n, fast.n)
+        assert (A1 - A2).abs().max() <= 1e-7 * A2.abs().max()
+        assert (B1 - B2).abs().max() <= 1e-7 * B2.abs().max()
+        # trajectory_jacobians and the autograd backward go through the same dispatch
+        T1 = fast.trajectory_jacobians(xs[:, None, :], us[:, None, :])
+        assert torch.equal(T1[0][:, 0], A1) and torch.equal(T1[1][:, 0], B1)
+
+
+def test_transition_fd_path_dtype_batch_and_bad_elements():
+    m = _euler_copy("InvertedPendulum-v5")
+    sys = MujocoSystem(m, jacobian_method="transition_fd", frame_skip=2)
+    g = torch.Generator().manual_seed(4)
+    x = torch.randn(2, 3, sys.nx, generator=g, dtype=F64) * 0.1
+    u = torch.rand(2, 3, 1, generator=g, dtype=F64) - 0.5
+    x[0, 1, 2] = float("nan")
+    A, B = sys.jacobian(x, u)
+    assert A.shape == (2, 3, 4, 4) and B.shape == (2, 3, 4, 1)
+    bad = torch.zeros(2, 3, dtype=torch.bool)
+    bad[0, 1] = True
+    assert A[bad].isnan().all() and A[~bad].isfinite().all() and B[~bad].isfinite().all()
+    Al, Bl = sys.jacobian(x[1, 2], u[1, 2])
+    assert torch.equal(Al, A[1, 2]) and torch.equal(Bl, B[1, 2])  # batched == one element
+    A32, _ = sys.jacobian(x[1].float(), u[1].float())
+    assert A32.dtype == torch.float32 and torch.allclose(A32.double(), A[1], rtol=1e-5, atol=1e-6)
+
+
+def test_jacobian_method_choice_and_errors(pendulum):
+    m = _euler_copy("InvertedPendulum-v5")
+    assert MujocoSystem(m).uses_transition_fd()  # auto, Euler, frame_skip 1
+    assert MujocoSystem(m, frame_skip=2).uses_transition_fd()
+    assert not MujocoSystem(m, nthread=2).uses_transition_fd()  # the rollouts run on the pool
+    assert not pendulum.uses_transition_fd()  # RK4
+    with pytest.raises(ValueError, match="jacobian_method"):
+        MujocoSystem(m, jacobian_method="analytic")
+    with pytest.raises(ValueError, match="RK4"):
+        MujocoSystem(pendulum.model, frame_skip=2, jacobian_method="transition_fd")
+    fast = MujocoSystem(m, jacobian_method="transition_fd")
+    m.opt.integrator = mujoco.mjtIntegrator.mjINT_RK4  # changed after construction: refused at the call
+    with pytest.raises(ValueError, match="RK4"):
+        fast.jacobian(torch.zeros(fast.nx, dtype=F64), torch.zeros(1, dtype=F64))
+
+
+@pytest.mark.parametrize("frame_skip", [1, 2])
+def test_transition_fd_path_marks_a_diverging_element(frame_skip, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # MuJoCo logs the diverging element's warning to ./MUJOCO_LOG.TXT
+    sys = MujocoSystem(_euler_copy("InvertedPendulum-v5"), frame_skip=frame_skip,
+                       jacobian_method="transition_fd")
+    g = torch.Generator().manual_seed(9)
+    x = torch.randn(3, 4, generator=g, dtype=F64) * 0.1
+    u = torch.rand(3, 1, generator=g, dtype=F64) - 0.5
+    clean_A, clean_B = sys.jacobian(x, u)
+    xb = x.clone()
+    xb[1, 3] = 5e9  # finite, but MuJoCo diverges and resets it inside the call
+    A, B = sys.jacobian(xb, u)
+    assert (tmp_path / "MUJOCO_LOG.TXT").exists()
+    assert A[1].isnan().all() and B[1].isnan().all()
+    assert torch.equal(A[[0, 2]], clean_A[[0, 2]]) and torch.equal(B[[0, 2]], clean_B[[0, 2]])
+
+
+# ------------------------------------------------------------------------------------------------------
+# forward differences, and open-loop rollouts in one call
+# ------------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", ["rollout", "transition_fd"])
+def test_forward_differences_agree_with_central_to_their_accuracy(method):
+    """``fd_scheme='forward'``: ``n + m + 1`` perturbed steps; the Jacobians equal the central ones to the
+    forward scheme's accuracy (~3e-8), on a hinge model (RK4 for the rollout path, an Euler copy for
+    mjd_transitionFD) and on the free/ball model with contacts (tangent coordinates), a control on each limit
+    (one-sided inward)."""
+    m = _euler_copy("InvertedDoublePendulum-v5") if method == "transition_fd" else \
+        gym.make("InvertedDoublePendulum-v5").unwrapped.model
+    g = torch.Generator().manual_seed(5)
+    x = torch.randn(5, m.nq + m.nv, generator=g, dtype=F64) * 0.2
+    u = torch.rand(5, m.nu, generator=g, dtype=F64) - 0.5
+    u[0], u[1] = 1.0, -1.0
+    mb, xb = _box_ball()
+    mb.opt.integrator = mujoco.mjtIntegrator.mjINT_EULER
+    # contacts: the differences are secants of a stiff, nonsmooth response (1e-4 there, 3e-6 on the hinges)
+    ub = torch.tensor([[0.3], [1.0]], dtype=F64)
+    for model, xs, us, tol in ((m, x, u, 3e-6), (mb, xb.expand(2, -1), ub, 1e-4)):
+        fwd = MujocoSystem(model, jacobian_method=method, fd_scheme="forward")
+        ctr = MujocoSystem(model, jacobian_method=method)
+        assert fwd.fd_eps == 1.5e-8 and ctr.fd_eps == 1e-6
+        assert 2e-8 < fwd.derivative_accuracy < 4e-8 < ctr.derivative_accuracy * 1e3
+        (A1, B1), (A2, B2) = fwd.jacobian(xs, us), ctr.jacobian(xs, us)
+        assert (A1 - A2).abs().max() <= tol * A2.abs().max()
+        assert (B1 - B2).abs().max() <= tol * B2.abs().max()
+        assert (A1 - A2).abs().max() > 0  # a different scheme, not the same numbers
+        assert fwd.ilqr_options().tol_kkt == pytest.approx(1e3 * fwd.derivative_accuracy)
+
+
+def test_forward_differences_count_their_rollouts(pendulum, monkeypatch):
+    fwd = MujocoSystem(pendulum.model, frame_skip=pendulum.frame_skip, fd_scheme="forward")
+    rows = []
+    real = fwd._run
+
+    def spy(xf, uf, **kw):
+        rows.append(xf.shape[0])
+        return real(xf, uf, **kw)
+
+    monkeypatch.setattr(fwd, "_run", spy)
+    fwd.jacobian(torch.zeros(3, 4, dtype=F64), torch.zeros(3, 1, dtype=F64))
+    assert rows == [3 * (4 + 1 + 1)]  # one call: n + m + 1 steps per element
+    with pytest.raises(ValueError, match="fd_scheme"):
+        MujocoSystem(pendulum.model, fd_scheme="backward")
+
+
+def test_open_loop_rollout_runs_in_one_call_and_equals_stepping(pendulum, monkeypatch):
+    """controllers.dynamics.rollout on a MujocoSystem is one rollout_states call (not T steps), equal to
+    stepping (the warm start MuJoCo carries across steps inside one call does not show here)."""
+    from controllers.dynamics import rollout
+
+    g = torch.Generator().manual_seed(2)
+    x0 = torch.randn(3, 4, generator=g, dtype=F64) * 0.1
+    u = torch.rand(3, 7, 1, generator=g, dtype=F64) * 2 - 1
+    steps = [x0]
+    for t in range(7):
+        steps.append(pendulum.step(steps[-1], u[:, t]))
+    calls = []
+    real = pendulum._run
+    monkeypatch.setattr(pendulum, "_run", lambda xf, uf, **kw: calls.append(uf.shape) or real(xf, uf, **kw))
+    X = rollout(pendulum, x0, u)
+    assert calls == [(3, 7, 1)]
+    assert X.shape == (3, 8, 4)
+    assert (X - torch.stack(steps, 1)).abs().max() <= 1e-12
+    # broadcast: one initial state for a batch of control sequences
+    Xb = rollout(pendulum, x0[0], u)
+    assert Xb.shape == (3, 8, 4) and torch.equal(Xb[0], rollout(pendulum, x0[0], u[0]))
