@@ -220,6 +220,7 @@ def mountain_car_model(env: Any = None, *, horizon: int = 30, max_iter: int = 5,
 
     return EnvModel(
         env_id="MountainCarContinuous-v0", system=MountainCar(), cost=cost, state_from_obs=mountain_car_state,
-        action_low=(-1.0,), action_high=(1.0,), horizon=horizon, max_iter=max_iter, random_starts=0,
+        action_low=(-1.0,), action_high=(1.0,), obs_dim=2, horizon=horizon, max_iter=max_iter,
+        random_starts=0,
         knows="the car's exact dynamics (slope, power, clips, the inelastic left wall); the cost is the "
               "reward's 0.1 u² plus a terminal energy deficit in place of the sparse +100 at the goal")

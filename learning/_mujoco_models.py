@@ -61,21 +61,29 @@ weighted (``terminal``, default 1: measured, 5 and 20 changed a return by at mos
 
 The MPC knows the model (the env's own ``MjModel``) and the reward's terms; an RL agent knows neither.
 
-**Planner defaults and measurements** (``learning.evaluate(ModelMPC(model, multistart=...), id,
-seeds=range(10), num_envs=10, timing_steps=50)``, 2-core CPU shared with other jobs, ``OMP_NUM_THREADS=1``;
-float64; ms = median per MPC step at batch 10 / batch 1)::
+**Planner defaults and measurements** (``learning.evaluate(ModelMPC(model), id, seeds=range(10),
+num_envs=10, timing_steps=50)``, 2-core CPU shared with other jobs, ``OMP_NUM_THREADS=1``; float64; ms =
+median per MPC step at batch 10 / batch 1, eager sweeps)::
 
-    env                        horizon max_iter multistart  return (mean ± std)   ms b10 / b1   not certified
-    InvertedPendulum-v5        15      2        False       1000 ± 0 (all 1000)   221 / 56      0 %
-    InvertedDoublePendulum-v5   6      4        False       9359.91 ± 0.09        304 / 145     0.08 %
-    Reacher-v5                 20      4        True        -3.42 ± 1.42          5713 / 879    20 %
+    env                        horizon iterations      multistart return (mean ± std) ms b10 / b1 uncertified
+    InvertedPendulum-v5        15      2               False      1000 ± 0 (all 1000)  221 / 56    0 %
+    InvertedDoublePendulum-v5   6      4               False      9359.91 ± 0.09       304 / 145   0.08 %
+    Reacher-v5                 20      4 first, then 1 "start"    -3.42 ± 1.42         197 / 69    61 %
 
 The time is MuJoCo's: an RK4 step costs ~15 µs here, and one iLQR iteration takes ``2 (n + m) T`` rollout
-steps for the central-difference Jacobians plus ``line_search_steps · T`` for the line search, each
-``frame_skip`` MuJoCo steps, per element and guess (InvertedPendulum at batch 10: 3.3 s of 4.5 s in
-``mujoco.rollout``).  On Reacher the extra guesses of the multi-start help where the target is behind
-the arm (seed 1: −4.72 against −6.19 from the previous plan alone); a single start with ``max_iter = 8``
-reached −3.44 in 2.2 s a step.
+steps for central-difference Jacobians (``n + m + 1`` forward) plus ``line_search_steps · T`` for the line
+search, each ``frame_skip`` MuJoCo steps, per element and guess (InvertedPendulum at batch 10: 3.3 s of
+4.5 s in ``mujoco.rollout``).  On Reacher the multi-start's extra guesses help where the target is behind
+the arm (seed 1: −4.72 against −6.19 from the previous plan alone), but only at an episode's first step:
+Reacher plans in real time — the multi-start with 4 iterations at the first step, then one iteration a
+step from the shifted plan (``multistart="start"``, ``start_iter=4``, ``max_iter=1``) on forward-difference
+Jacobians (``fd_scheme="forward"``) — and scores what the full multi-start with 4 iterations every step did
+(−3.42 ± 1.42, the same to 0.01 on every seed) at 69 ms a step instead of 879 (5713 at batch 10).  A plan
+after one iteration is rarely certified (61 % not; the certificate's tolerance, 3e-5, follows the forward
+differences' accuracy): its first control is what the real-time scheme acts on.  With
+``ModelMPC(..., compile=True)`` the backward passes are compiled programs (built once, minutes, cached on
+disk): 20.6 ms a step at batch 1 (``liecontrol bench gym --envs Reacher-v5 --policies ilqr --batch 1
+--compile``; docs/gym_envs.md).
 """
 
 from __future__ import annotations
@@ -99,9 +107,9 @@ REACHER = "Reacher-v5"
 # ------------------------------------------------------------------------------------------------ helpers
 
 
-def _system(env: Any, env_id: str):
+def _system(env: Any, env_id: str, **kw: Any):
     """``(MujocoSystem, single env)`` of ``env`` (an ``Env``, a ``VectorEnv`` of copies, or ``None``: a new
-    ``gym.make(env_id)``)."""
+    ``gym.make(env_id)``); ``kw``: of :meth:`MujocoSystem.from_env`."""
     import gymnasium as gym
 
     from controllers.systems.mujoco_system import MujocoSystem
@@ -112,7 +120,7 @@ def _system(env: Any, env_id: str):
         single = envs[0] if envs else None
     if single is None:
         single = gym.make(env_id)
-    return MujocoSystem.from_env(single), single
+    return MujocoSystem.from_env(single, **kw), single
 
 
 def _options(system, options: dict[str, Any] | None, **defaults) -> dict[str, Any]:
@@ -166,7 +174,8 @@ def inverted_pendulum_model(env: Any = None, *, horizon: int = 15, max_iter: int
 
     return EnvModel(
         env_id=INVERTED_PENDULUM, system=system, cost=cost, state_from_obs=ip_state,
-        action_low=(-3.0,), action_high=(3.0,), horizon=horizon, max_iter=max_iter, random_starts=0,
+        action_low=(-3.0,), action_high=(3.0,), obs_dim=4, horizon=horizon,
+        max_iter=max_iter, random_starts=0,
         multistart=False,  # one start is enough at a trim point (4.6x faster, the same 1000)
         options=_options(system, options, line_search_steps=line_search_steps, tol=1e-11),
         knows="the env's MjModel (dynamics, FD Jacobians); a quadratic cost about the upright state in place "
@@ -312,7 +321,8 @@ def inverted_double_pendulum_model(env: Any = None, *, horizon: int = 6, max_ite
 
     return EnvModel(
         env_id=INVERTED_DOUBLE_PENDULUM, system=system, cost=cost, state_from_obs=idp_state,
-        action_low=(-1.0,), action_high=(1.0,), horizon=horizon, max_iter=max_iter, random_starts=0,
+        action_low=(-1.0,), action_high=(1.0,), obs_dim=9, horizon=horizon,
+        max_iter=max_iter, random_starts=0,
         multistart=False,
         options=_options(system, options, line_search_steps=line_search_steps, tol=1e-11),
         knows="the env's MjModel (dynamics, FD Jacobians) and the reward's penalties; the alive bonus and "
@@ -423,13 +433,14 @@ def _reacher_geometry(mm) -> dict[str, Any]:
                 dz=float(mm.body_pos[b0][2] + mm.body_pos[b1][2] + mm.body_pos[ft][2] - mm.body_pos[tg][2]))
 
 
-def reacher_model(env: Any = None, *, horizon: int = 20, max_iter: int = 4, terminal: float = 1.0,
-                  smoothing: float = 0.005, line_search_steps: int = 6,
-        options: dict[str, Any] | None = None):
+def reacher_model(env: Any = None, *, horizon: int = 20, max_iter: int = 1, start_iter: int = 4,
+                  multistart: bool | str = "start", terminal: float = 1.0, smoothing: float = 0.005,
+                  line_search_steps: int = 4, fd_scheme: str = "forward",
+                  options: dict[str, Any] | None = None):
     """The :class:`~learning.env_models.EnvModel` of ``Reacher-v5`` (module docstring)."""
     from learning.env_models import EnvModel
 
-    system, single = _system(env, REACHER)
+    system, single = _system(env, REACHER, fd_scheme=fd_scheme)
     inner = getattr(single, "unwrapped", single)
     wd = float(getattr(inner, "_reward_dist_weight", 1.0))
     wc = float(getattr(inner, "_reward_control_weight", 1.0))
@@ -441,7 +452,8 @@ def reacher_model(env: Any = None, *, horizon: int = 20, max_iter: int = 4, term
 
     return EnvModel(
         env_id=REACHER, system=system, cost=cost, state_from_obs=reacher_state,
-        action_low=(-1.0, -1.0), action_high=(1.0, 1.0), horizon=horizon, max_iter=max_iter,
-        random_starts=0, options=_options(system, options, line_search_steps=line_search_steps, tol=1e-11),
+        action_low=(-1.0, -1.0), action_high=(1.0, 1.0), obs_dim=10, horizon=horizon, max_iter=max_iter,
+        start_iter=start_iter, multistart=multistart, random_starts=0,
+        options=_options(system, options, line_search_steps=line_search_steps, tol=1e-11),
         knows="the env's MjModel (dynamics, FD Jacobians, link lengths) and the reward, the distance "
               "smoothed over 5 mm")

@@ -1,11 +1,24 @@
-"""RL baselines: stable-baselines3 PPO and SAC on the batched task envs, with per-task defaults, learning
-curves measured by :func:`learning.evaluate`, and weights saved in a form that loads safely.
+"""RL baselines: stable-baselines3 PPO, SAC and TD3 on the batched task envs — or on a foreign gymnasium id
+(``"Pendulum-v1"``, ``"InvertedPendulum-v5"``, ...) — with per-task defaults, learning curves measured by
+:func:`learning.evaluate`, and weights saved in a form that loads safely.
 
-* :data:`PPO_DEFAULTS` / :data:`SAC_DEFAULTS`: hyperparameters by task name (``"*"`` the fallback);
+* :data:`PPO_DEFAULTS` / :data:`SAC_DEFAULTS` / :data:`TD3_DEFAULTS`: hyperparameters by task name
+  (``"*"`` the fallback);
   ``n_envs`` is the number of training environments, the rest are keyword arguments of the SB3 class.
   PendulumSwingUp uses rl-baselines3-zoo's tuned Pendulum-v1 settings (our task has Pendulum-v1's
   physics, reward and horizon; actions are normalized to ``[-1, 1]``).
 * :func:`make_agent` builds an agent on an :class:`~learning.sb3.SB3VecEnv` (a natively batched env).
+* Foreign gymnasium ids (any registered id outside the ``liecontrol/`` namespace, e.g. ``"Pendulum-v1"``):
+  the agent trains on SB3's own vectorized env of ``gymnasium.make(id)`` (``make_vec_env``: a
+  ``DummyVecEnv`` of ``Monitor``-wrapped envs), seeded as a task's (below), with the rl-baselines3-zoo's
+  tuned hyperparameters (:mod:`learning.zoo_hyperparams`; the zoo's ``normalize: true``, i.e.
+  ``VecNormalize``, is **not** applied and a note says so), and is evaluated by :func:`learning.evaluate` on
+  the id (actions in the env's units).  Only SB3's own policies (``"MlpPolicy"``) train there: the
+  project's MPC policies need a task.  An ``Env`` instance is refused (give its id).
+* TD3's ``noise_type`` (``"normal"`` / ``"ornstein-uhlenbeck"``) and ``noise_std`` are hyperparameters here
+  (JSON, recordable) that :func:`make_agent` turns into SB3's ``action_noise``; a ``policy_kwargs`` entry
+  of the hyperparameters is the policy's keyword arguments unless ``policy_kwargs`` is given; a string
+  ``"lin_X"`` as ``learning_rate`` or ``clip_range`` is the zoo's linear schedule from ``X`` to 0.
 * :func:`train` trains within a step budget and evaluates the deterministic policy every ``eval_every``
   environment steps on fixed held-out seeds (:func:`eval_seeds`; batched), giving a learning curve.
   It saves three files per run: ``model.zip`` (SB3's own format), ``policy.pt`` (the policy's plain
@@ -33,6 +46,7 @@ stable-baselines3 is imported only inside the functions.
 
 from __future__ import annotations
 
+import copy
 import json
 import math
 import time
@@ -47,12 +61,13 @@ from learning._policy_io import POLICIES, decode, encode, policy_class, policy_n
 from learning.envs.single import int_arg, make_task
 from learning.envs.task import Task
 
-__all__ = ["ALGOS", "PPO_DEFAULTS", "SAC_DEFAULTS", "DEFAULT_BUDGETS", "hyperparams", "default_budget",
+__all__ = ["ALGOS", "PPO_DEFAULTS", "SAC_DEFAULTS", "TD3_DEFAULTS", "DEFAULT_BUDGETS", "FOREIGN_BUDGETS",
+           "hyperparams", "default_budget", "is_foreign_id",
            "eval_seeds", "train_env_seed", "make_agent", "train", "TrainResult", "load_agent",
            "save_agent", "read_agent_meta", "steps_to_match", "mean_curve", "tensorboard_available",
            "EVAL_SEED0", "register_policy"]
 
-ALGOS = ("ppo", "sac")
+ALGOS = ("ppo", "sac", "td3")
 
 #: first env seed of the held-out evaluation episodes
 EVAL_SEED0 = 10**6
@@ -81,14 +96,31 @@ SAC_DEFAULTS: dict[str, dict[str, Any]] = {
     "*": dict(n_envs=1, learning_rate=1e-3, gamma=0.98),
 }
 
-#: default training budgets (environment steps per training seed) by task name, chosen so that
-#: ``liecontrol compare TASK`` with 3 seeds finishes in at most about 15 min on a loaded 2-core CPU (SAC
-#: does one gradient step per environment step: 25-60 steps/s there; PPO 700-1300 steps/s)
+#: TD3 hyperparameters by task name (``"*"``: fallback): SAC's learning rate and discount, Gaussian
+#: exploration noise 0.1 (the zoo's default for TD3)
+TD3_DEFAULTS: dict[str, dict[str, Any]] = {
+    "*": dict(n_envs=1, learning_rate=1e-3, gamma=0.98, noise_type="normal", noise_std=0.1),
+}
+
+#: default training budgets (environment steps per training seed) by task name (TD3: SAC's budget),
+#: chosen so that ``liecontrol compare TASK`` with 3 seeds finishes in at most about 15 min on a loaded
+#: 2-core CPU (SAC does one gradient step per environment step: 25-60 steps/s there; PPO 700-1300 steps/s)
 DEFAULT_BUDGETS: dict[str, dict[str, int]] = {
     # PPO matched the MPC's success by ~29k steps in every seed (measured); rl-zoo's figure is at 1e5
     "PendulumSwingUp": {"ppo": 60_000, "sac": 5_000},
     "CartPoleSwingUp": {"ppo": 100_000, "sac": 6_000},
     "*": {"ppo": 50_000, "sac": 4_000},
+}
+
+#: default training budgets on foreign gymnasium ids (``"*"``: fallback), a few minutes per agent on a
+#: loaded 2-core CPU; the zoo's own budgets are :data:`learning.zoo_hyperparams.ZOO_TIMESTEPS` (Pendulum-v1:
+#: PPO 1e5, SAC and TD3 2e4 — TD3's first 10⁴ steps there are random actions, fast, before any update)
+FOREIGN_BUDGETS: dict[str, dict[str, int]] = {
+    "Pendulum-v1": {"ppo": 60_000, "sac": 5_000, "td3": 15_000},
+    "MountainCarContinuous-v0": {"ppo": 20_000, "sac": 5_000, "td3": 5_000},
+    # the zoo's SAC and TD3 start learning after 10⁴ random steps here
+    "HalfCheetah-v5": {"ppo": 50_000, "sac": 15_000, "td3": 15_000},
+    "*": {"ppo": 50_000, "sac": 5_000, "td3": 5_000},
 }
 
 
@@ -99,17 +131,51 @@ def _algo(algo: str) -> str:
     return a
 
 
+def is_foreign_id(task: Any) -> bool:
+    """Whether ``task`` is a registered gymnasium id that is not one of the project's tasks."""
+    from learning.evaluate_env import is_foreign
+
+    return isinstance(task, str) and is_foreign(task)
+
+
+def _target(task: Any, where: str) -> Task | str:
+    """A :class:`Task`, or a foreign gymnasium id (kept as the string)."""
+    import gymnasium as gym
+
+    if is_foreign_id(task):
+        return task
+    if isinstance(task, (gym.Env, gym.vector.VectorEnv)):
+        raise TypeError(f"{where}: argument 'task' must be a task or a registered gymnasium id (SB3 builds "
+                        f"its own copies of the env), got an env instance {task!r}; pass its id")
+    return make_task(task)
+
+
+def _name(target: Task | str) -> str:
+    return target if isinstance(target, str) else target.name
+
+
 def hyperparams(algo: str, task: Task | str) -> dict[str, Any]:
-    """A copy of the default hyperparameters of ``algo`` on ``task`` (its name's entry, else ``"*"``)."""
-    table = PPO_DEFAULTS if _algo(algo) == "ppo" else SAC_DEFAULTS
-    name = make_task(task).name
-    return dict(table.get(name, table["*"]))
+    """A copy of the default hyperparameters of ``algo`` on ``task`` (its name's entry, else ``"*"``; a
+    foreign gymnasium id: the rl-baselines3-zoo's, :func:`learning.zoo_hyperparams.zoo_hyperparams`)."""
+    a = _algo(algo)
+    target = _target(task, "hyperparams")
+    if isinstance(target, str):
+        from learning.zoo_hyperparams import zoo_hyperparams
+
+        return zoo_hyperparams(a, target)[0]
+    table = {"ppo": PPO_DEFAULTS, "sac": SAC_DEFAULTS, "td3": TD3_DEFAULTS}[a]
+    return copy.deepcopy(table.get(target.name, table["*"]))
 
 
 def default_budget(algo: str, task: Task | str) -> int:
-    """Default training budget (environment steps) of ``algo`` on ``task``."""
-    name = make_task(task).name
-    return int(DEFAULT_BUDGETS.get(name, DEFAULT_BUDGETS["*"])[_algo(algo)])
+    """Default training budget (environment steps) of ``algo`` on ``task`` (:data:`DEFAULT_BUDGETS`, TD3
+    taking SAC's where a task names none; a foreign id: :data:`FOREIGN_BUDGETS`)."""
+    a = _algo(algo)
+    target = _target(task, "default_budget")
+    if isinstance(target, str):
+        return int(FOREIGN_BUDGETS.get(target, FOREIGN_BUDGETS["*"])[a])
+    row = DEFAULT_BUDGETS.get(target.name, DEFAULT_BUDGETS["*"])
+    return int(row.get(a, row["sac"]))
 
 
 def eval_seeds(episodes: int) -> list[int]:
@@ -132,26 +198,59 @@ def tensorboard_available() -> bool:
 
 
 def _sb3_class(algo: str):
-    from stable_baselines3 import PPO, SAC
+    from stable_baselines3 import PPO, SAC, TD3
 
-    return PPO if _algo(algo) == "ppo" else SAC
+    return {"ppo": PPO, "sac": SAC, "td3": TD3}[_algo(algo)]
+
+
+def _schedule(v: Any) -> Any:
+    """The zoo's ``"lin_X"`` as SB3's linear schedule from ``X`` (progress 1) to 0; other values as is."""
+    if isinstance(v, str) and v.startswith("lin_"):
+        x = float(v[4:])
+        return lambda progress_remaining: progress_remaining * x
+    return v
+
+
+def _sb3_kwargs(kw: dict[str, Any], action_space) -> dict[str, Any]:
+    """Hyperparameters as SB3's class takes them: ``noise_type``/``noise_std`` -> ``action_noise``, ``lin_``
+    schedules -> callables (module docstring)."""
+    kw = dict(kw)
+    noise_type, noise_std = kw.pop("noise_type", None), kw.pop("noise_std", None)
+    if noise_type is not None:
+        from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
+
+        m = int(np.prod(action_space.shape))
+        sigma = float(0.1 if noise_std is None else noise_std) * np.ones(m)
+        kinds = {"normal": NormalActionNoise, "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}
+        if noise_type not in kinds:
+            raise ValueError(f"hyperparameter 'noise_type' must be one of {sorted(kinds)}, "
+                             f"got {noise_type!r}")
+        kw["action_noise"] = kinds[noise_type](mean=np.zeros(m), sigma=sigma)
+    elif noise_std is not None:
+        raise ValueError("hyperparameter 'noise_std' given without 'noise_type'")
+    for k in ("learning_rate", "clip_range"):
+        if k in kw:
+            kw[k] = _schedule(kw[k])
+    return kw
 
 
 def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None = None,
                tensorboard_log: str | Path | None = None, device: str = "cpu",
                params: dict[str, Any] | None = None, policy: Any = "MlpPolicy",
                policy_kwargs: dict[str, Any] | None = None):
-    """A fresh SB3 agent (``PPO`` or ``SAC``, ``MlpPolicy``) on ``num_envs`` batched training environments
-    of ``task`` (an :class:`~learning.sb3.SB3VecEnv` in a ``VecMonitor``).
+    """A fresh SB3 agent (``PPO``, ``SAC`` or ``TD3``, ``MlpPolicy``) on ``num_envs`` batched training
+    environments of ``task`` (an :class:`~learning.sb3.SB3VecEnv` in a ``VecMonitor``; a foreign gymnasium
+    id: SB3's ``make_vec_env(id, num_envs)``).
 
     Args:
-        algo: ``"ppo"`` or ``"sac"``.
-        task: a :class:`Task` or its name.
+        algo: ``"ppo"``, ``"sac"`` or ``"td3"``.
+        task: a :class:`Task` or its name, or a registered gymnasium id (module docstring).
         seed: training seed (module docstring for the env seeds it implies).
         num_envs: training environments (default: the hyperparameters' ``n_envs``).
         tensorboard_log: folder for SB3's TensorBoard logs (needs the ``tensorboard`` package).
         device: torch device of the networks.
-        params: hyperparameters (default :func:`hyperparams`); ``n_envs`` is taken out of them.
+        params: hyperparameters (default :func:`hyperparams`); ``n_envs`` is taken out of them, a
+            ``policy_kwargs`` entry is used when ``policy_kwargs`` is ``None``.
         policy, policy_kwargs: SB3's policy (class or name) and its arguments, e.g.
             :class:`learning.mpc_policy.MPCActorCriticPolicy` with ``{"task": task}``; with
             ``"warm_start": True`` (PPO only) the env is wrapped in
@@ -162,23 +261,35 @@ def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None 
 
     from learning.sb3 import SB3VecEnv
 
-    task = make_task(task)
-    kw = hyperparams(algo, task) if params is None else dict(params)
+    task = _target(task, "make_agent")
+    kw = hyperparams(algo, task) if params is None else copy.deepcopy(dict(params))
     n = int(kw.pop("n_envs", 1) if num_envs is None else num_envs)
     kw.pop("n_envs", None)
-    venv, algo_cls = SB3VecEnv(task, n), _sb3_class(algo)
-    if isinstance(policy, str) and policy in POLICIES:  # a registered name (SB3 knows only its aliases)
-        policy = policy_class(algo_cls, policy)
-    if (policy_kwargs or {}).get("warm_start"):  # the MPC head's plan rides in the observation
-        from learning.mpc_warmstart import warm_start_setup
+    algo_cls = _sb3_class(algo)
+    if isinstance(task, str):  # a foreign gymnasium id: SB3's own vectorized env of gymnasium.make(id)
+        from stable_baselines3.common.env_util import make_vec_env
 
-        venv, algo_cls = warm_start_setup(venv, task, algo, policy, policy_kwargs)
-    env = VecMonitor(venv)
+        ours = (policy in POLICIES if isinstance(policy, str)
+                else not getattr(policy, "__module__", "").startswith("stable_baselines3"))
+        if ours or (policy_kwargs or {}).get("warm_start"):
+            raise ValueError(f"make_agent: on the gymnasium id {task!r} only SB3's own policies train (e.g. "
+                             f"'MlpPolicy'), got policy {policy!r}; the project's MPC policies need a task")
+        env = make_vec_env(task, n_envs=n)  # a DummyVecEnv of Monitor-wrapped envs
+    else:
+        venv = SB3VecEnv(task, n)
+        if isinstance(policy, str) and policy in POLICIES:  # a registered name (SB3 knows only its aliases)
+            policy = policy_class(algo_cls, policy)
+        if (policy_kwargs or {}).get("warm_start"):  # the MPC head's plan rides in the observation
+            from learning.mpc_warmstart import warm_start_setup
+
+            venv, algo_cls = warm_start_setup(venv, task, algo, policy, policy_kwargs)
+        env = VecMonitor(venv)
     if policy_kwargs is not None:
         kw["policy_kwargs"] = dict(policy_kwargs)
+    kw = _sb3_kwargs(kw, env.action_space)
     model = algo_cls(policy, env, seed=int(seed), device=device,
-                             tensorboard_log=None if tensorboard_log is None else str(tensorboard_log),
-                             verbose=0, **kw)
+                     tensorboard_log=None if tensorboard_log is None else str(tensorboard_log),
+                     verbose=0, **kw)
     model.env.seed(train_env_seed(seed))  # SB3 seeded the envs with `seed`; ours are disjoint per seed
     return model
 
@@ -209,12 +320,14 @@ class TrainResult:
         return {"steps": list(self.steps), "returns": list(self.returns), "success": list(self.success)}
 
 
-def _curve_point(model, task: Task, seeds: list[int]) -> tuple[float, float]:
+def _curve_point(model, task: Task | str, seeds: list[int]) -> tuple[float, float]:
+    """``(mean return, success rate)``; the success rate is NaN on an env that defines no success."""
     from learning.evaluate import evaluate
 
     r = evaluate(model, task, seeds=seeds, num_envs=len(seeds), dtype=torch.float32, progress=False,
                  timing_batch1=False)
-    return float(np.mean(r.returns)), float(np.mean(r.success))
+    succ = float(np.mean(r.success)) if r.meta.get("success_defined", True) else math.nan
+    return float(np.mean(r.returns)), succ
 
 
 def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_every: int | None = None,
@@ -227,7 +340,8 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
     The deterministic policy is evaluated (:func:`learning.evaluate`, all ``eval_episodes`` episodes in
     one batch, seeds :func:`eval_seeds`) before training, every ``eval_every`` steps (default: a tenth of
     the budget; at the start of the first rollout past each multiple, i.e. after the updates of the
-    previous one) and at the end.  A PPO budget below one rollout (``n_steps · n_envs``) shortens the rollout
+    previous one) and at the end (on a foreign gymnasium id: on the id, the success rate NaN unless the env
+    gives ``info["is_success"]``).  A PPO budget below one rollout (``n_steps · n_envs``) shortens the rollout
     to fit.  SB3 counts steps per batch of environments, so an evaluation happens at
     the first multiple of ``num_envs`` past each ``k·eval_every``, and PPO ends at its first full rollout
     past the budget.  With ``out_dir``, ``model.zip``, ``policy.pt`` and ``agent.json`` are written there
@@ -243,7 +357,8 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
     from stable_baselines3.common.callbacks import BaseCallback
 
     algo = _algo(algo)
-    task = make_task(task)
+    task = _target(task, "train")
+    name = _name(task)
     budget_steps = int_arg(budget_steps, "budget_steps", "train")
     every = max(1, budget_steps // 10) if eval_every is None else int_arg(eval_every, "eval_every", "train")
     seeds = eval_seeds(int_arg(eval_episodes, "eval_episodes", "train"))
@@ -251,12 +366,23 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
     if num_envs is not None:
         kw["n_envs"] = int(num_envs)
     notes: list[str] = []
+    if isinstance(task, str) and params is None:
+        from learning.zoo_hyperparams import ZOO_HP_SOURCE, ZOO_NORMALIZE, zoo_hyperparams
+
+        note = zoo_hyperparams(algo, task)[1]
+        notes.append(note or f"{algo} hyperparameters on {task}: {ZOO_HP_SOURCE}")
+        if algo in ZOO_NORMALIZE.get(task, ()):
+            notes.append(f"the zoo trains {algo} on {task} with VecNormalize (normalize: true); not applied "
+                         "here: the agent sees raw observations and rewards")
     if algo == "ppo":
         n_envs, n_steps = int(kw.get("n_envs", 1)), int(kw.get("n_steps", 2048))
         if n_envs * n_steps > budget_steps:  # a budget below one rollout: shorter rollouts, not overshoot
             kw["n_steps"] = max(2, budget_steps // n_envs)
             kw["batch_size"] = min(int(kw.get("batch_size", 64)), kw["n_steps"] * n_envs)
             notes.append(f"PPO rollout shortened to n_steps={kw['n_steps']} to fit the budget")
+    if algo != "ppo" and int(kw.get("learning_starts", 100)) >= budget_steps:
+        notes.append(f"{algo}: learning_starts={int(kw.get('learning_starts', 100))} >= the budget of "
+                     f"{budget_steps} steps: the agent took random actions only and was never updated")
     if out_dir is not None:  # what save_agent will record: fail now, not after training
         policy_name(_sb3_class(algo), policy)
         encode(kw, "train: argument 'params'")
@@ -280,7 +406,7 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
         curve["returns"].append(ret)
         curve["success"].append(succ)
         if log is not None:
-            log(f"{task.name} {algo} seed {seed}: {steps} steps, eval return {ret:.1f}, success {succ:.2f}")
+            log(f"{name} {algo} seed {seed}: {steps} steps, eval return {ret:.1f}, success {succ:.2f}")
 
     class _Curve(BaseCallback):
         def __init__(self):
@@ -312,7 +438,7 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
         for k in curve:
             curve[k].pop()
     point(model.num_timesteps)
-    res = TrainResult(model=model, algo=algo, task=task.name, seed=int(seed), steps=curve["steps"],
+    res = TrainResult(model=model, algo=algo, task=name, seed=int(seed), steps=curve["steps"],
                       returns=curve["returns"], success=curve["success"], train_time_s=train_time,
                       eval_time_s=clock["eval"], num_timesteps=int(model.num_timesteps), params=kw,
                       notes=notes, policy_kwargs=dict(policy_kwargs or {}))
@@ -362,9 +488,10 @@ _META_TYPES: dict[str, tuple] = {"algo": (str,), "task": (str,), "params": (dict
 _NUM = (int, float)
 _PARAM_TYPES: dict[str, tuple] = {
     **dict.fromkeys(("n_envs", "n_steps", "batch_size", "n_epochs", "sde_sample_freq", "buffer_size",
-                     "learning_starts", "gradient_steps", "target_update_interval"), (int,)),
-    **dict.fromkeys(("gamma", "gae_lambda", "learning_rate", "clip_range", "tau", "max_grad_norm", "vf_coef"),
-                    _NUM),
+                     "learning_starts", "gradient_steps", "target_update_interval", "train_freq"), (int,)),
+    **dict.fromkeys(("gamma", "gae_lambda", "tau", "max_grad_norm", "vf_coef", "noise_std"), _NUM),
+    **dict.fromkeys(("learning_rate", "clip_range"), (*_NUM, str)), "noise_type": (str,),
+    "policy_kwargs": (dict,),
     **dict.fromkeys(("use_sde", "normalize_advantage"), (bool,))}
 _POLICY_KWARG_TYPES: dict[str, tuple] = {
     "net_arch": (list, dict), "cost_net_arch": (list, None), "activation_fn": (type,),
@@ -411,7 +538,8 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     The agent is built afresh by :func:`make_agent` from the hyperparameters, the policy (looked up by the
     name recorded: an SB3 alias or a :func:`register_policy` entry) and its keyword arguments in
     ``agent.json``, and its policy weights are read with ``torch.load(..., weights_only=True)``: plain
-    tensors, no code runs.  A file written before policies were recorded holds an ``MlpPolicy``.
+    tensors, no code runs.  A file written before policies were recorded holds an ``MlpPolicy``.  An agent
+    made on a foreign gymnasium id (``task`` in ``agent.json`` is the id) is rebuilt on SB3's env of it.
 
     ``path`` may instead name an SB3 ``.zip``; it is loaded only with ``trust_zip=True``.  **Warning:**
     SB3 zip files contain pickled Python objects that ``load`` unpickles, so a model file from an
@@ -431,9 +559,7 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
                              "instead, or pass trust_zip=True for a file you made yourself")
         if algo is None:
             algo = read_agent_meta(p)["algo"]
-        from learning.sb3 import SB3VecEnv
-
-        env = None if task is None else SB3VecEnv(make_task(task), 1)
+        env = None if task is None else _one_env(_target(task, "load_agent"))
         return _sb3_class(algo).load(str(p), env=env, device=device)
     pt = p / "policy.pt" if p.is_dir() else p
     meta_path = pt.parent / "agent.json"
@@ -441,9 +567,9 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     algo = meta["algo"] if algo is None else _algo(algo)
     if algo != meta["algo"]:
         raise ValueError(f"load_agent: {pt} holds a {meta['algo']} agent, not {algo}")
-    task = make_task(meta["task"] if task is None else task)
-    if task.name != meta["task"]:
-        raise ValueError(f"load_agent: {pt} was trained on {meta['task']}, not {task.name}")
+    task = _target(meta["task"] if task is None else task, "load_agent")
+    if _name(task) != meta["task"]:
+        raise ValueError(f"load_agent: {pt} was trained on {meta['task']}, not {_name(task)}")
     policy_label = meta.get("policy", "MlpPolicy")
     policy = policy_class(_sb3_class(algo), policy_label)
     pk = meta["policy_kwargs"]
@@ -463,15 +589,27 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     return model
 
 
+def _one_env(target: Task | str):
+    """One training-style SB3 env of a task or a foreign id."""
+    if isinstance(target, str):
+        from stable_baselines3.common.env_util import make_vec_env
+
+        return make_vec_env(target, n_envs=1)
+    from learning.sb3 import SB3VecEnv
+
+    return SB3VecEnv(target, 1)
+
+
 def mean_curve(curves: list[dict[str, list]], key: str = "returns") -> tuple[np.ndarray, np.ndarray,
                                                                                np.ndarray, np.ndarray]:
-    """``(steps, mean, min, max)`` of ``key`` over several curves, on the steps they all have."""
+    """``(steps, mean, min, max)`` of ``key`` over several curves, on the steps they all have (a ``None``
+    value, e.g. a success rate read back from JSON where the env defines none, counts as NaN)."""
     if not curves:
         raise ValueError("mean_curve: no curves")
     common = sorted(set.intersection(*(set(int(s) for s in c["steps"]) for c in curves)))
     rows = []
     for c in curves:
-        at = {int(s): float(v) for s, v in zip(c["steps"], c[key])}
+        at = {int(s): (math.nan if v is None else float(v)) for s, v in zip(c["steps"], c[key])}
         rows.append([at[s] for s in common])
     v = np.asarray(rows, dtype=np.float64).reshape(len(curves), len(common))
     return np.asarray(common, dtype=np.int64), v.mean(0), v.min(0), v.max(0)

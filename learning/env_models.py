@@ -22,6 +22,10 @@ The shipped models:
 ``ulum-v5``, ``Reacher``  quadratic about upright; the reward's penalties with a tip-height barrier in
 ``-v5``                   place of the alive bonus and the LQR cost-to-go at upright; the fingertip
                           distance, smoothed, and ``‖a‖²``).
+``HalfCheetah-v5``        :class:`~controllers.systems.mujoco_system.MujocoSystem` of the env's own MjModel
+                          (contacts); cost = minus the return exactly (``learning._mujoco_locomotion``:
+                          the forward progress over the horizon, ``0.1 ‖a‖²``); planned by the sampling MPC
+                          (:class:`learning.sampling_mpc.SamplingModelMPC`).
 ``MountainCarContinuous``  the env's dynamics exactly (:class:`learning._mountain_car.MountainCar`: clips,
 ``-v0``                   the inelastic left wall); cost = the reward's ``0.1 u²`` plus a terminal energy
                           deficit in place of the sparse +100 (:class:`~learning._mountain_car.
@@ -35,6 +39,7 @@ dimension the system's ``m``, and the observation map must give ``(N, n)`` state
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -60,10 +65,18 @@ class EnvModel:
             u (*B, T, m)) -> (*B,)``, :mod:`controllers.costs`).
         state_from_obs: ``(N, obs_dim) -> (N, n)`` observations to states (dtype and device kept).
         action_low, action_high: the env's action box ``(m,)``.
-        horizon, max_iter, random_starts, multistart: the planner's defaults
-            (:class:`learning.model_mpc.ModelMPC`; ``multistart=False``: one start, the previous plan).
+        obs_dim: the env's observation size (``None``: not checked), so that a policy refuses an
+            observation of another width instead of reading its first columns.
+        horizon, max_iter, random_starts, multistart, start_iter: the planner's defaults
+            (:class:`learning.model_mpc.ModelMPC`; ``multistart=False``: one start, the previous plan;
+            ``"start"``: the multi-start set at an episode's first step only; ``start_iter``: iterations of
+            that first solve, ``None``: ``max_iter``).
         knows: what the MPC knows that an RL agent does not.
         options: ``ILQROptions`` overrides (e.g. tolerances for finite-difference Jacobians).
+        planner: the MPC that ``"mpc"`` means on this env (:func:`learning.model_mpc.model_policy`):
+            ``"ilqr"`` (:class:`~learning.model_mpc.ModelMPC`) or ``"sampling"``
+            (:class:`~learning.sampling_mpc.SamplingModelMPC`, for contact-rich models and costs that are
+            not smooth).
     """
 
     env_id: str
@@ -72,12 +85,15 @@ class EnvModel:
     state_from_obs: Callable[[Tensor], Tensor]
     action_low: tuple[float, ...]
     action_high: tuple[float, ...]
+    obs_dim: int | None = None
     horizon: int = 30
     max_iter: int = 20
     random_starts: int = 0
-    multistart: bool = True
+    multistart: bool | str = True
+    start_iter: int | None = None
     knows: str = ""
     options: dict[str, Any] = field(default_factory=dict)
+    planner: str = "ilqr"
 
     @property
     def n(self) -> int:
@@ -141,16 +157,44 @@ def _check_built_as_registered(model: EnvModel, env: Any) -> None:
     spec = getattr(one, "spec", None)
     if spec is not None and spec.id in gym.registry:
         default = gym.registry[spec.id].kwargs or {}
-        changed = {k: v for k, v in (spec.kwargs or {}).items() if default.get(k, v) != v or k not in default}
+        kwargs = dict(spec.kwargs or {})
+        if isinstance(one, gym.vector.VectorEnv):  # gym.make_vec's own arguments (an AsyncVectorEnv's spec)
+            for k in ("num_envs", "vectorization_mode", "vector_kwargs"):
+                kwargs.pop(k, None)
+            if all(getattr(w, "__name__", None) in NEUTRAL_WRAPPERS for w in kwargs.get("wrappers", ())):
+                kwargs.pop("wrappers", None)
+        changed = {k: v for k, v in kwargs.items() if default.get(k, v) != v or k not in default}
         if changed:
             raise ValueError(f"env_model: the env was made with {changed}, but the model of {model.env_id} "
                              "is for its registered defaults; build an EnvModel for these parameters")
 
 
+def _check_time_step(model: EnvModel, env: Any) -> None:
+    """The system's step must be the env's: ``system.dt`` equal to ``env.unwrapped.dt`` where both exist (a
+    MuJoCo model with another ``opt.timestep`` or ``frame_skip`` plans a different env)."""
+    one = _first_env(env)
+    env_dt = getattr(getattr(one, "unwrapped", None), "dt", None)
+    if env_dt is None and isinstance(one, gym.vector.VectorEnv):  # an AsyncVectorEnv: ask its workers
+        try:
+            env_dt = one.get_attr("dt")[0]
+        except Exception:  # noqa: BLE001 - no dt to compare
+            env_dt = None
+    sys_dt = getattr(model.system, "dt", None)
+    if isinstance(sys_dt, Tensor) and sys_dt.numel() == 1:
+        sys_dt = float(sys_dt)
+    if not all(isinstance(v, numbers.Real) and not isinstance(v, bool) for v in (env_dt, sys_dt)):
+        return  # (numbers.Real: a numpy float32 dt is compared too)
+    if not math.isclose(float(sys_dt), float(env_dt), rel_tol=1e-9, abs_tol=0.0):
+        raise ValueError(f"env_model: the model of {model.env_id} steps dt = {float(sys_dt):g} s but the env "
+                         f"steps dt = {float(env_dt):g} s (its MuJoCo time step x frame_skip); build the "
+                         "system from this env (MujocoSystem.from_env) or with its time step")
+
+
 def check_model(model: EnvModel, env: Any) -> None:
     """A ``TypeError``/``ValueError`` naming the mismatch when ``model`` does not fit ``env``: its spaces
-    (1-d ``Box`` es, the action dimension and bounds), the observation map's output shape, and the env
-    itself (:data:`NEUTRAL_WRAPPERS` only, the registered constructor arguments)."""
+    (1-d ``Box`` es, the action dimension and bounds), the observation map's output shape, the time step
+    (``system.dt`` against ``env.unwrapped.dt`` where both exist), and the env itself
+    (:data:`NEUTRAL_WRAPPERS` only, the registered constructor arguments)."""
     vec = isinstance(env, gym.vector.VectorEnv)
     aspace = env.single_action_space if vec else env.action_space
     ospace = env.single_observation_space if vec else env.observation_space
@@ -163,6 +207,10 @@ def check_model(model: EnvModel, env: Any) -> None:
                          f"model's [{list(model.action_low)}, {list(model.action_high)}] (a rescaling "
                          "wrapper?)")
     _check_built_as_registered(model, env)
+    _check_time_step(model, env)
+    if model.obs_dim is not None and tuple(ospace.shape) != (model.obs_dim,):
+        raise ValueError(f"env_model: the env observes shape {tuple(ospace.shape)} but the model of "
+                         f"{model.env_id} maps observations of size {model.obs_dim}")
     obs = torch.as_tensor(ospace.sample(), dtype=torch.float64).reshape(1, -1)
     x = model.state_from_obs(obs)
     if not isinstance(x, Tensor) or tuple(x.shape) != (1, model.n):
@@ -194,7 +242,7 @@ def _pendulum_v1(env: Any = None) -> EnvModel:
 
     return EnvModel(
         env_id="Pendulum-v1", system=_gym_pendulum(), cost=_pendulum_cost, state_from_obs=_pendulum_state,
-        action_low=(-2.0,), action_high=(2.0,), horizon=40, max_iter=20, random_starts=0,
+        action_low=(-2.0,), action_high=(2.0,), obs_dim=3, horizon=40, max_iter=20, random_starts=0,
         knows="the pendulum's equations of motion and parameters, and the reward as the planning cost")
 
 
@@ -210,11 +258,12 @@ def _mountain_car_continuous(env: Any = None) -> EnvModel:
 register_env_model("MountainCarContinuous-v0", _mountain_car_continuous)
 
 
-def _mujoco(name: str):
+def _mujoco(name: str, module: str = "_mujoco_models"):
+    """A factory calling ``learning.<module>.<name>`` (imported on first use: MuJoCo is an extra)."""
     def factory(env: Any = None) -> EnvModel:
-        from learning import _mujoco_models
+        import importlib
 
-        return getattr(_mujoco_models, name)(env)
+        return getattr(importlib.import_module(f"learning.{module}"), name)(env)
 
     return factory
 
@@ -222,3 +271,4 @@ def _mujoco(name: str):
 register_env_model("InvertedPendulum-v5", _mujoco("inverted_pendulum_model"))
 register_env_model("InvertedDoublePendulum-v5", _mujoco("inverted_double_pendulum_model"))
 register_env_model("Reacher-v5", _mujoco("reacher_model"))
+register_env_model("HalfCheetah-v5", _mujoco("half_cheetah_model", "_mujoco_locomotion"))

@@ -257,9 +257,9 @@ def _resolve_policy(policy: Any, env: Any, venv):
     if isinstance(policy, str):
         if policy.lower() not in ("mpc", "expert", "mpc_expert"):
             raise ValueError(f"evaluate: unknown policy name {policy!r} (known: 'mpc')")
-        from learning.model_mpc import ModelMPC
+        from learning.model_mpc import model_policy
 
-        return ModelMPC(venv)  # checked against the env as built (its arguments, its wrappers)
+        return model_policy(venv)  # checked against the env as built (its arguments, its wrappers)
     return as_policy(policy)
 
 

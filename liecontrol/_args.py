@@ -3,7 +3,8 @@
 Every type here is an argparse ``type=`` callable: a bad value becomes one line
 ``liecontrol CMD: error: argument --NAME: ...`` (exit status 2) while the command line is parsed, before
 any work starts.  This module imports nothing heavy (no torch): ``liecontrol CMD --help`` builds its parser
-from it alone.  :func:`task_name` imports :mod:`learning.envs` only when it is called.
+from it alone.  :func:`task_name` imports :mod:`learning.envs` (and :func:`env_name` gymnasium) only when
+it is called.
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from pathlib import Path
 
 __all__ = ["HelpFormatter", "positive_int", "nonnegative_int", "positive_float", "nonnegative_float", "seed",
            "thread_count", "int_at_most", "float_at_most", "OptionError", "out_dir", "out_file",
-           "existing_file", "existing_dir", "task_name", "KNOWN_VERSION", "SEED_MAX", "THREADS_MAX"]
+           "existing_file", "existing_dir", "task_name", "env_name", "KNOWN_VERSION", "SEED_MAX",
+           "THREADS_MAX"]
 
 #: the only registered version of the ``liecontrol/<Name>-vN`` environment ids
 KNOWN_VERSION = 0
@@ -217,3 +219,20 @@ def task_name(value: str) -> str:
         f"unknown task {value!r}"
     raise argparse.ArgumentTypeError(f"{what}; known: {', '.join(sorted(TASKS))} (or a unique prefix, any "
                                      f"case, or liecontrol/<task>-v{KNOWN_VERSION})")
+
+
+def env_name(value: str) -> str:
+    """:func:`task_name`, or a foreign gymnasium id kept as it is: a registered id outside the
+    ``liecontrol/`` namespace (``Pendulum-v1``, ``InvertedPendulum-v5``; exact spelling) that is not a task.
+    An unknown value is the task error, which also names this form."""
+    if value.strip() and not value.startswith("liecontrol/"):
+        import gymnasium as gym
+
+        from learning.envs import TASKS
+
+        if value not in TASKS and value in gym.registry:
+            return value
+    try:
+        return task_name(value)
+    except argparse.ArgumentTypeError as e:
+        raise argparse.ArgumentTypeError(f"{e}; or a registered gymnasium id such as Pendulum-v1") from None

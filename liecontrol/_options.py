@@ -24,6 +24,7 @@ import re
 from pathlib import Path
 
 from liecontrol._args import (
+    env_name,
     existing_dir,
     existing_file,
     float_at_most,
@@ -265,6 +266,8 @@ def bench_gym(p: argparse.ArgumentParser) -> None:
     p.add_argument("--steps", type=positive_int, default=50, metavar="N", help="steps of each episode timed")
     p.add_argument("--horizon", type=positive_int, default=None, metavar="T",
                    help="planning horizon (default: the model's)")
+    p.add_argument("--compile", action="store_true",
+                   help="ilqr: compiled solver sweeps (built once: minutes; cached on disk)")
     _common(p)
 
 
@@ -388,14 +391,14 @@ def bench_primitives(p: argparse.ArgumentParser) -> None:
 # --------------------------------------------------------------------------------------- compare, learn
 
 
-_BUDGET = re.compile(r"^(?:(ppo|sac)=)?(\d+)$")
+_BUDGET = re.compile(r"^(?:(ppo|sac|td3)=)?(\d+)$")
 
 
 def budget_item(s: str) -> tuple[str | None, int]:
     """A ``--budget-steps`` item: ``N`` (every algorithm) or ``ALGO=N`` -> ``(ALGO or None, N)``."""
     m = _BUDGET.match(s.strip().lower())
     if not m or int(m.group(2)) < 1:
-        raise argparse.ArgumentTypeError("expected N or ALGO=N with ALGO in ppo, sac and N a positive "
+        raise argparse.ArgumentTypeError("expected N or ALGO=N with ALGO in ppo, sac, td3 and N a positive "
                                          "integer, "
                                          f"got {s!r}")
     return m.group(1), int(m.group(2))
@@ -427,14 +430,18 @@ def _check_compare(args: argparse.Namespace) -> str | None:
 
 
 def compare(p: argparse.ArgumentParser) -> None:
-    p.add_argument("task", metavar="TASK", type=task_name,
+    p.add_argument("task", metavar="TASK", type=env_name,
                    help="task: PendulumSwingUp, CartPoleSwingUp, ... (a unique prefix in any case, or "
-                        "liecontrol/<task>-v0)")
-    p.add_argument("--algos", nargs="+", default=["ppo", "sac"], choices=["ppo", "sac"],
+                        "liecontrol/<task>-v0), or a registered gymnasium id with a model for its MPC "
+                        "(Pendulum-v1, MountainCarContinuous-v0, InvertedPendulum-v5, "
+                        "InvertedDoublePendulum-v5, Reacher-v5; learning.env_models): the agents then train "
+                        "on gymnasium.make(ENV) with the rl-baselines3-zoo's hyperparameters")
+    p.add_argument("--algos", nargs="+", default=["ppo", "sac"], choices=["ppo", "sac", "td3"],
                    help="RL algorithms (stable-baselines3)")
     p.add_argument("--budget-steps", nargs="+", type=budget_item, default=None, metavar="[ALGO=]N",
                    help="training environment steps per seed: N for every algorithm, or ALGO=N (default: per "
-                        "task and algorithm, learning.baselines.DEFAULT_BUDGETS)")
+                        "task and algorithm, learning.baselines.DEFAULT_BUDGETS; gymnasium ids: "
+                        "FOREIGN_BUDGETS)")
     p.add_argument("--seeds", nargs="+", type=seed, default=[0, 1, 2], metavar="S",
                    help="training seeds (one agent per algorithm and seed)")
     p.add_argument("--eval-episodes", type=positive_int, default=None, metavar="N",

@@ -1,5 +1,17 @@
-"""``liecontrol compare TASK``: the MPC expert (zero training) next to PPO and SAC (stable-baselines3) trained
-within a step budget, all evaluated on the same held-out episodes.
+"""``liecontrol compare ENV``: the MPC expert (zero training) next to PPO, SAC and TD3 (stable-baselines3)
+trained within a step budget, all evaluated on the same held-out episodes.
+
+``ENV`` is one of the project's tasks, or a foreign gymnasium id with a registered model
+(:mod:`learning.env_models`: ``Pendulum-v1``, ``MountainCarContinuous-v0``, ``InvertedPendulum-v5``,
+``InvertedDoublePendulum-v5``, ``Reacher-v5``).  On a foreign id the MPC is
+:class:`learning.model_mpc.ModelMPC` on the env's model, the agents train on SB3's vectorized
+``gymnasium.make(ENV)`` with the rl-baselines3-zoo's tuned hyperparameters
+(:mod:`learning.zoo_hyperparams`, without the zoo's ``VecNormalize``), everything is evaluated on the id
+itself (returns are the env's own), and the report's one table gives per policy the mean ± std return,
+the RL steps to match the MPC's mean return, the milliseconds per action at batch 1 and the zoo's
+published score (:mod:`learning.zoo`, "not published" where it has none); a success rate only where the env
+gives ``info["is_success"]``.  A foreign id without a registered model is refused unless ``mpc=False``
+(``--no-mpc``): then only the agents are trained and compared.
 
 For each training seed and algorithm the agent is trained by :func:`learning.baselines.train` (or, with
 ``--load DIR``, rebuilt from the ``policy.pt`` weights a previous run saved, without training), its learning
@@ -19,7 +31,8 @@ JSON schema: ``{"env", "mpc": {metrics} | null, "ppo": {metrics}, "sac": {metric
 {algo: steps}, "seeds": [training seeds]}``; the metrics are the subset :data:`METRIC_KEYS` of
 :meth:`learning.evaluate.EvalResult.summary` (for an algorithm: over the episodes of all its training
 seeds pooled), and an algorithm's entry adds ``per_seed``, ``curve``, ``steps_to_match``,
-``train_time_s``, ``num_timesteps``, ``loaded`` and ``params``.
+``train_time_s``, ``num_timesteps``, ``loaded`` and ``params``; on a foreign gymnasium id the record also
+has ``"foreign": true`` (and a success rate of ``null`` where the env defines none).
 
 "RL steps to match the MPC": the first evaluated step count at which the agent's evaluation success
 rate, averaged over the training seeds, reaches the MPC's (and, separately, the mean return reaches the
@@ -46,11 +59,11 @@ import torch
 
 from liecontrol import _options
 from liecontrol._args import OptionError
-from liecontrol._args import task_name as resolve_env
+from liecontrol._args import env_name as resolve_env
 from liecontrol._progress import TrainingProgress, write
 from liecontrol.report import fmt, print_table, restores_threads
 
-__all__ = ["add_arguments", "run", "compare", "METRIC_KEYS", "parse_budgets", "resolve_env"]
+__all__ = ["add_arguments", "run", "compare", "METRIC_KEYS", "parse_budgets", "resolve_env", "zoo_text"]
 
 #: the keys of EvalResult.summary() kept in the JSON metrics
 METRIC_KEYS = ("episodes", "num_envs", "success_rate", "return", "final_error", "tracking_error", "effort",
@@ -197,19 +210,32 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
     from learning import baselines as bl
     from learning.envs.single import int_arg, make_task
     from learning.evaluate import evaluate, jsonable
-    from learning.policies import task_expert
 
     t_start = time.perf_counter()
     threads = int_arg(threads, "threads", "compare")
     torch.set_num_threads(threads)
-    task = make_task(resolve_env(env))
+    try:
+        resolved = resolve_env(env) if isinstance(env, str) else env
+    except argparse.ArgumentTypeError as e:
+        raise OptionError("TASK", str(e)) from None
+    foreign = bl.is_foreign_id(resolved)
+    task = resolved if foreign else make_task(resolved)  # a foreign env stays its id (picklable, re-made)
+    name = task if foreign else task.name
+    if foreign and mpc:
+        from learning.env_models import env_model
+
+        try:
+            env_model(name)
+        except ValueError as e:
+            raise OptionError("TASK", f"{e}; or pass --no-mpc (mpc=False) to compare the agents only"
+                              ) from None
     algos = list(algos)
     seeds = [int_arg(s, "seeds", "compare", 0) for s in seeds]
     if not seeds:
         raise ValueError("argument --seeds: give at least one training seed")
     budgets = parse_budgets(None, algos, task) if budget_steps is None else {a: int(budget_steps[a])
                                                                              for a in algos}
-    E = DEFAULT_EVAL_EPISODES.get(task.name, 16) if eval_episodes is None else eval_episodes
+    E = DEFAULT_EVAL_EPISODES.get(name, 16) if eval_episodes is None else eval_episodes
     E = int_arg(E, "eval_episodes", "compare")
     N = min(E, int_arg(num_envs, "num_envs", "compare") if num_envs is not None else E)
     if eval_every is not None:
@@ -217,16 +243,16 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
     if jobs is not None:
         int_arg(jobs, "jobs", "compare")
     ev_seeds = bl.eval_seeds(E)
-    root = Path(out) if out is not None else Path("out/compare") / task.name
+    root = Path(out) if out is not None else Path("out/compare") / name
     root.mkdir(parents=True, exist_ok=True)
     say = log or (lambda s: None)
-    record: dict = {"env": task.name, "mpc": None}
+    record: dict = {"env": name, "mpc": None} | ({"foreign": True} if foreign else {})
     notes: list[str] = []
 
     work = [(a, s) for a in algos for s in seeds] if load is None else []
     jobs = min(jobs or os.cpu_count() or 1, max(len(work), 1))
     progress = TrainingProgress({k: budgets[k[0]] for k in work}, quiet=quiet,
-                                label=lambda k: f"{task.name} {k[0]} seed {k[1]}", log=log)
+                                label=lambda k: f"{name} {k[0]} seed {k[1]}", log=log)
 
     def job(a, s):
         every = eval_every or max(1, budgets[a] // 20)
@@ -238,25 +264,25 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
         if jobs > 1:
             workers = stack.enter_context(_Workers(jobs, progress))
             futures = {(a, s): workers.submit((a, s), *job(a, s)) for a, s in work}
-            say(f"{task.name}: training {len(work)} agents in {jobs} worker processes")
+            say(f"{name}: training {len(work)} agents in {jobs} worker processes")
         else:
             stack.callback(progress.close)
 
         mpc_res = None
         if mpc:
-            expert = task_expert(task, horizon=mpc_horizon)
-            say(f"{task.name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
+            expert = _expert(task, foreign, mpc_horizon)
+            say(f"{name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
             mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=not quiet)
             record["mpc"] = _metrics(mpc_res.summary()) | {"horizon": expert.horizon, "eval_seeds": ev_seeds}
-            say(f"{task.name}: MPC success {mpc_res.success.mean():.3f}, return {mpc_res.returns.mean():.1f}")
-        mpc_success = float(mpc_res.success.mean()) if mpc_res is not None else math.nan
+            say(f"{name}: MPC success {_success(mpc_res):.3f}, return {mpc_res.returns.mean():.1f}")
+        mpc_success = _success(mpc_res) if mpc_res is not None else math.nan
         mpc_return = float(mpc_res.returns.mean()) if mpc_res is not None else math.nan
 
         for algo in algos:
             per_seed, results, curves = [], [], []
             for s in seeds:
                 if load is not None:
-                    pt = _find_saved(Path(load), task.name, algo, s)
+                    pt = _find_saved(Path(load), name, algo, s)
                     meta = bl.read_agent_meta(pt)
                     try:
                         model = bl.load_agent(pt, algo, task)
@@ -267,7 +293,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
                     if meta.get("eval_episodes") not in (None, E):
                         notes.append(f"{algo} seed {s}: its saved curve was evaluated on "
                                      f"{meta['eval_episodes']} episodes, the final evaluation on {E}")
-                    say(f"{task.name} {algo} seed {s}: loaded {pt} (no training)")
+                    say(f"{name} {algo} seed {s}: loaded {pt} (no training)")
                     loaded = True
                     r = evaluate(model, task, seeds=ev_seeds, num_envs=N, dtype=torch.float32, progress=False)
                 else:
@@ -281,7 +307,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
                 results.append(r)
                 curves.append(curve)
                 per_seed.append(_seed_record(s, r, curve, train_time, steps, loaded, mpc_success, mpc_return))
-                say(f"{task.name} {algo} seed {s}: success {per_seed[-1]['success_rate']:.3f}, "
+                say(f"{name} {algo} seed {s}: success {per_seed[-1]['success_rate']:.3f}, "
                     f"return {per_seed[-1]['return_mean']:.1f}")
             record[algo] = _algo_record(results, curves, per_seed, params, ev_seeds, mpc_success, mpc_return)
     record["budget_steps"] = budgets
@@ -292,16 +318,35 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
              "curves": str(root / "curves.png")}
     _plot(record, algos, files["curves"])
     Path(files["json"]).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
-    Path(files["report"]).write_text(_report(record, algos, task, E, N, notes, wall, threads, jobs))
+    report = _report_foreign if foreign else _report
+    Path(files["report"]).write_text(report(record, algos, task, E, N, notes, wall, threads, jobs))
     return record | {"_files": files, "_wall_time_s": wall}
+
+
+def _expert(task, foreign: bool, horizon: int | None):
+    """The MPC expert: the task's (:func:`learning.policies.task_expert`), or on a foreign id the model MPC
+    of its registered :class:`~learning.env_models.EnvModel`."""
+    if foreign:
+        from learning.model_mpc import model_policy
+
+        return model_policy(task, horizon=horizon)
+    from learning.policies import task_expert
+
+    return task_expert(task, horizon=horizon)
+
+
+def _success(r) -> float:
+    """The success rate of an evaluation (NaN where the env defines no success)."""
+    return float(r.success.mean()) if r.meta.get("success_defined", True) else math.nan
 
 
 def _seed_record(s, r, curve, train_time, steps, loaded, mpc_success, mpc_return) -> dict:
     from learning import baselines as bl
 
-    return {"seed": s, "success_rate": float(r.success.mean()),
+    fe = r.final_error
+    return {"seed": s, "success_rate": _success(r),
             "return_mean": float(r.returns.mean()), "return_std": float(r.returns.std()),
-            "final_error_mean": float(np.nanmean(r.final_error)),
+            "final_error_mean": float(np.nanmean(fe)) if np.isfinite(fe).any() else math.nan,
             "train_time_s": train_time, "num_timesteps": steps, "loaded": loaded,
             "steps_to_match": {"success": bl.steps_to_match(curve["steps"], curve["success"], mpc_success),
                                "return": bl.steps_to_match(curve["steps"], curve["returns"], mpc_return)}}
@@ -309,6 +354,7 @@ def _seed_record(s, r, curve, train_time, steps, loaded, mpc_success, mpc_return
 
 def _algo_record(results, curves, per_seed, params, ev_seeds, mpc_success, mpc_return) -> dict:
     from learning import baselines as bl
+    from learning._policy_io import encode
 
     pooled = _pooled(results)
     st, rmean, rmin, rmax = bl.mean_curve(curves, "returns")
@@ -322,7 +368,7 @@ def _algo_record(results, curves, per_seed, params, ev_seeds, mpc_success, mpc_r
                   "success_mean": smean, "success_min": smin, "success_max": smax},
         "train_time_s": {"mean": float(np.mean(times)) if times else None, "total": float(sum(times))},
         "num_timesteps": max(int(p["num_timesteps"] or 0) for p in per_seed),
-        "loaded": all(p["loaded"] for p in per_seed), "params": params}
+        "loaded": all(p["loaded"] for p in per_seed), "params": encode(params, "params")}
 
 
 def budget_text(budgets: dict[str, int]) -> str:
@@ -408,9 +454,123 @@ def _report(rec: dict, algos: list[str], task, E: int, N: int, notes: list[str],
             sm = rec[a]["steps_to_match"]["success"]
             L.append(f"- {a.upper()} steps to match the MPC's success rate: "
                      f"{_match_text(sm, rec['budget_steps'][a])}")
+    return _ending(L, notes, "the evaluation return and success rate")
+
+
+def zoo_text(env_id: str, algo: str) -> str:
+    """The rl-baselines3-zoo's published score of ``algo`` on ``env_id`` as report text (``"mpc"``: the best
+    published agent), or ``"not published"``."""
+    from learning.zoo import zoo_best, zoo_scores
+
+    if algo == "mpc":
+        best = zoo_best(env_id)
+        if best is None:
+            return "not published"
+        a, _ = best
+        return f"best published: {a.upper()} {zoo_text(env_id, a)}"
+    row = zoo_scores(env_id).get(algo)
+    if row is None:
+        return "not published"
+    mean, std, steps = row
+    return f"{mean:.1f} ± {std:.1f} after {steps} steps"
+
+
+def _success_defined(rec: dict, algos: list[str]) -> bool:
+    return any(m is not None and m.get("success_rate") is not None
+               for m in [rec.get("mpc")] + [rec[a] for a in algos])
+
+
+def _foreign_rows(rec: dict, algos: list[str]) -> tuple[list[dict], list[str]]:
+    """The printed table of a foreign id: ``(rows, columns)``."""
+    env, mpc = rec["env"], rec.get("mpc")
+    rows = []
+    if mpc:
+        rows.append({"policy": "mpc", "train_steps": 0, "return_mean": mpc["return"]["mean"],
+                     "return_std": mpc["return"]["std"], "success_rate": mpc["success_rate"],
+                     "steps_to_match_return": "-", "ms_action_batch1": mpc["step_ms_batch1"]["median"],
+                     "zoo_published": zoo_text(env, "mpc")})
+    for a in algos:
+        m, match = rec[a], rec[a]["steps_to_match"]["return"]
+        rows.append({"policy": a, "train_steps": m["num_timesteps"], "return_mean": m["return"]["mean"],
+                     "return_std": m["return"]["std"], "success_rate": m["success_rate"],
+                     "steps_to_match_return": ("-" if not mpc else "not reached" if match is None else match),
+                     "ms_action_batch1": m["step_ms_batch1"]["median"], "zoo_published": zoo_text(env, a)})
+    cols = ["policy", "train_steps", "return_mean", "return_std"]
+    cols += ["success_rate"] if _success_defined(rec, algos) else []
+    return rows, cols + ["steps_to_match_return", "ms_action_batch1", "zoo_published"]
+
+
+def _report_foreign(rec: dict, algos: list[str], env_id: str, E: int, N: int, notes: list[str], wall: float,
+                    threads: int, jobs: int = 1) -> str:
+    """``report.md`` of a foreign gymnasium id: one table of returns, steps to match, compute and the zoo."""
+    from learning.baselines import EVAL_SEED0
+    from learning.zoo import ZOO_SOURCE
+    from learning.zoo_hyperparams import ZOO_HP_SOURCE, ZOO_TIMESTEPS
+
+    mpc = rec.get("mpc")
+    succ = _success_defined(rec, algos)
+    zoo_steps = ZOO_TIMESTEPS.get(env_id, {})
+    L = [f"# liecontrol compare — {env_id}", "", "## Setup", "",
+         f"- gymnasium env `{env_id}` (not one of the project's tasks): returns are the env's own rewards "
+         "summed over an episode" + ("" if succ else "; the env defines no success, so no success rate"),
+         f"- evaluation: {E} held-out episodes, env seeds {EVAL_SEED0}…{EVAL_SEED0 + E - 1} "
+         "(`reset(seed=s)`), the same for every policy, batch N = {N}; compute: milliseconds per action at "
+         "batch 1 (one env, a whole episode); RL agents deterministic".replace("{N}", str(N)),
+         (f"- MPC: `learning.model_mpc.ModelMPC` on the env's registered model (`learning.env_models`), "
+          f"horizon {mpc['horizon']}, zero training — it is given the model and a cost, an RL agent only "
+          "the rewards") if mpc else "- MPC: skipped (--no-mpc)",
+         f"- RL: stable-baselines3 {_sb3_version()} ({', '.join(a.upper() for a in algos)}) on SB3's "
+         f"`make_vec_env('{env_id}')`, training seeds {rec['seeds']} (training env seeds 1000·s + i), "
+         f"budget per seed: {budget_text(rec['budget_steps'])}; the zoo trained with "
+         + (", ".join(f"{a.upper()} {zoo_steps[a]}" for a in algos if a in zoo_steps) or "no tuned entry")
+         + " steps",
+         f"- hyperparameters: {ZOO_HP_SOURCE}; published scores: {ZOO_SOURCE}",
+         f"- torch {torch.__version__}, {threads} intra-op thread(s) per process, {jobs} training "
+         f"process(es); command wall time {wall:.0f} s", ""]
+    for a in algos:
+        L.append(f"- {a.upper()} hyperparameters: `{json.dumps(rec[a]['params'])}`")
+    L += ["", "## Results", ""]
+    head = ["policy", "training steps / seed", "return mean ± std"] + (["success rate"] if succ else []) + [
+        "steps to match MPC return", "ms/action batch 1 median (p95)", f"ms/step batch {N} median",
+        "training wall time / seed", "rl-baselines3-zoo published (mean ± std)"]
+    L += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+
+    def row(label, m, steps, match, ttime, zoo):
+        cells = [label, str(steps), f"{fmt(m['return']['mean'], '.1f')} ± {fmt(m['return']['std'], '.1f')}"]
+        cells += [fmt(m["success_rate"], ".3f")] if succ else []
+        cells += [match, f"{fmt(m['step_ms_batch1']['median'])} ({fmt(m['step_ms_batch1']['p95'])})",
+                  fmt(m["step_ms"]["median"]), ttime, zoo]
+        return "| " + " | ".join(cells) + " |"
+
+    if mpc:
+        L.append(row("MPC", mpc, 0, "—", "0 s", zoo_text(env_id, "mpc")))
+    for a in algos:
+        m = rec[a]
+        t = m["train_time_s"]["mean"]
+        tt = "loaded" if m["loaded"] and t is None else f"{fmt(t, '.0f')} s" + (" (loaded)" if m["loaded"]
+                                                                                else "")
+        match = "—" if not mpc else _match_text(m["steps_to_match"]["return"], rec["budget_steps"][a])
+        L.append(row(f"{a.upper()} ({len(rec['seeds'])} seeds pooled)", m, m["num_timesteps"], match, tt,
+                     zoo_text(env_id, a)))
+    L += ["", "Steps to match: the first evaluated step count at which the agent's mean evaluation return, "
+          "averaged over the training seeds, reaches the MPC's mean return. The zoo's figures are one "
+          "training run each, evaluated on other episodes and after the zoo's own budget (in the column): "
+          "a reference, not a like-for-like comparison.", "", "### Per training seed", "",
+          "| algo | seed | return mean ± std | steps to match MPC return | training wall time |",
+          "|---|---|---|---|---|"]
+    for a in algos:
+        for p in rec[a]["per_seed"]:
+            L.append(f"| {a.upper()} | {p['seed']} | {fmt(p['return_mean'], '.1f')} ± "
+                     f"{fmt(p['return_std'], '.1f')} | {fmt(p['steps_to_match']['return'], 'd')} | "
+                     f"{fmt(p['train_time_s'], '.0f')} s |")
+    return _ending(L, notes, "the evaluation return")
+
+
+def _ending(L: list[str], notes: list[str], what: str) -> str:
+    """The report's last sections (the curves' figure, the notes) appended to ``L``, as one text."""
     L += ["", "## Learning curves", "", "![learning curves](curves.png)", "",
-          "Mean over the training seeds (band: min–max) of the evaluation return and success rate on the "
-          "held-out episodes; dashed: the MPC (zero training)."]
+          f"Mean over the training seeds (band: min–max) of {what} on the held-out episodes; dashed: the MPC "
+          "(zero training)."]
     if notes:
         L += ["", "## Notes", ""] + [f"- {n}" for n in notes]
     return "\n".join(L) + "\n"
@@ -450,7 +610,7 @@ def _plot(rec: dict, algos: list[str], path: str) -> None:
     fig = Figure(figsize=(11, 4.2))
     FigureCanvasAgg(fig)
     axes = fig.subplots(1, 2)
-    colors = {"ppo": "tab:blue", "sac": "tab:orange"}
+    colors = {"ppo": "tab:blue", "sac": "tab:orange", "td3": "tab:green"}
     smallest, largest = [], [1.0]
     scale = {"return": 1.0, "success": 100.0}  # success rate drawn in percent
     for a in algos:
@@ -493,9 +653,7 @@ def _plot(rec: dict, algos: list[str], path: str) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from learning.envs.single import make_task
-
-    budgets = parse_budgets(args.budget_steps, list(args.algos), make_task(args.task))
+    budgets = parse_budgets(args.budget_steps, list(args.algos), args.task)
     log = None if args.quiet else write
     try:
         rec = compare(args.task, algos=args.algos, budget_steps=budgets, seeds=args.seeds,
@@ -507,16 +665,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"liecontrol compare: error: {e}", file=sys.stderr)
         return 2
     files, wall = rec.pop("_files"), rec.pop("_wall_time_s")
-    rows = []
-    if rec["mpc"]:
-        rows.append(_row("mpc", rec["mpc"], 0))
-    for a in args.algos:
-        rows.append(_row(a, rec[a], rec[a]["num_timesteps"], rec[a]["steps_to_match"]["success"]))
     episodes = len((rec["mpc"] or rec[args.algos[0]])["eval_seeds"])
     print(f"{rec['env']}: evaluation on {episodes} held-out episodes per policy "
           f"(RL: {len(rec['seeds'])} training seeds pooled)")
-    print_table(rows, ["policy", "train_steps", "return_mean", "return_std", "success_rate", "final_error",
-                       "ms_step_batchN", "ms_step_batch1", "steps_to_match_success"])
+    if rec.get("foreign"):
+        rows, cols = _foreign_rows(rec, list(args.algos))
+        print_table(rows, cols)
+    else:
+        rows = []
+        if rec["mpc"]:
+            rows.append(_row("mpc", rec["mpc"], 0))
+        for a in args.algos:
+            rows.append(_row(a, rec[a], rec[a]["num_timesteps"], rec[a]["steps_to_match"]["success"]))
+        print_table(rows, ["policy", "train_steps", "return_mean", "return_std", "success_rate",
+                           "final_error", "ms_step_batchN", "ms_step_batch1", "steps_to_match_success"])
     if args.json:
         p = Path(args.json)
         p.parent.mkdir(parents=True, exist_ok=True)

@@ -124,6 +124,23 @@ def test_check_model_passes_on_env_and_vector_env(models, eid):
     assert md.options["tol_kkt"] >= 1e3 * md.system.derivative_accuracy  # certified at what FD allows
 
 
+def test_check_model_rejects_a_model_with_another_time_step(models):
+    """A MuJoCo model whose time step (or frame_skip) differs from the env's plans another env: an error
+    naming both time steps, not a silently wrong MPC."""
+    from controllers.systems.mujoco_system import MujocoSystem
+
+    env, md = models[IP]
+    mm = mujoco.MjModel.from_xml_path(env.unwrapped.fullpath)
+    mm.opt.timestep = 2 * env.unwrapped.model.opt.timestep
+    other = dataclasses.replace(md, system=MujocoSystem(mm, frame_skip=env.unwrapped.frame_skip))
+    with pytest.raises(ValueError, match=r"dt = 0\.08 s but the env steps dt = 0\.04 s"):
+        check_model(other, env)
+    other = dataclasses.replace(md, system=MujocoSystem(env.unwrapped.model, frame_skip=1))
+    with pytest.raises(ValueError, match="dt = 0.02 s but the env"):
+        check_model(other, env)
+    check_model(dataclasses.replace(md, system=MujocoSystem(env.unwrapped.model, frame_skip=2)), env)
+
+
 # ------------------------------------------------------------------------------------------------ geometry
 
 

@@ -20,7 +20,7 @@ def test_rows_targets_and_ratios(tmp_path):
     assert {(r["policy"], r["batch"]) for r in rows} == {(p, b) for p in ("linear", "ilqr") for b in (1, 2)}
     for r in rows:
         assert r["status"] == "ok", r
-        assert r["step_ms"] > 0 and r["return_mean"] == 3.0  # the pole stays up: +1 a step
+        assert r["step_ms"] > 0 and r["first_ms"] > 0 and r["return_mean"] == 3.0  # the pole stays up
         assert r["target_ms"] == TARGETS.get((r["env"], r["batch"]))
         if r["target_ms"] is not None:
             assert math.isclose(r["vs_target"], r["step_ms"] / r["target_ms"])
