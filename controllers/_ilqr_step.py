@@ -91,6 +91,12 @@ class Linearization(NamedTuple):
     terms: Tensor  # (*B,) max of the gradient's terms
 
 
+def kkt_floor(tol: float, tol_kkt: float) -> float:
+    """The floor of :func:`kkt_relative`'s scale, ``tol / tol_kkt`` (0 for ``tol_kkt = 0``: nothing but an
+    exactly zero residual is certified then, as without a floor)."""
+    return tol / tol_kkt if tol_kkt > 0 else 0.0
+
+
 def kkt_relative(pg: Tensor, terms: Tensor, curv: Tensor, umax: Tensor, floor: float = 0.0) -> Tensor:
     """The relative KKT residual ``max|pg| / max(max terms + c · ‖u‖∞, c · floor)``
     (:attr:`ILQROptions.tol_kkt`); ``curv`` is ``c``, the largest diagonal entry of the Riccati ``Q_uu,t``
@@ -143,7 +149,7 @@ def stop_checks(it: Iterate, lin: Linearization, k: Tensor, curv: Tensor | None,
     """After the backward pass: the certificate with its curvature (``curv``; None for the batch form: the
     terms alone), and Δ_min of Algorithms 4-5 — a negligible step is converged if certified, else stalled."""
     cert = kkt_relative(lin.pg, lin.terms, torch.zeros_like(lin.pg) if curv is None else curv,
-                        lin.umax, s.tol / s.tol_kkt) <= s.tol_kkt
+                        lin.umax, kkt_floor(s.tol, s.tol_kkt)) <= s.tol_kkt
     done = it.active & (it.ntiny >= 1) & cert
     reason = torch.where(done, int(Reason.CONVERGED), it.reason)
     active = it.active & ~done

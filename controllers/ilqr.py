@@ -63,6 +63,7 @@ from controllers._ilqr_step import (
     Iterate,
     Settings,
     grow,
+    kkt_floor,
     kkt_relative,
     line_search,
     linearize,
@@ -661,7 +662,7 @@ def _solve(problem, x0, u, lo, hi, bad, bs, method, opts):
     dhi = None if hi is None else hi_tm - lin.u
     bw = backward_pass(lin.A, lin.B, lin.gx, lin.gu, lin.Hxx, lin.Hux, lin.Huu, mu, dlo, dhi, None, bs, cc,
                        try_two=True)
-    kkt = kkt_relative(lin.pg, lin.terms, bw.curv, lin.umax, tol / tol_kkt).expand(bs)
+    kkt = kkt_relative(lin.pg, lin.terms, bw.curv, lin.umax, kkt_floor(tol, tol_kkt)).expand(bs)
     certified = kkt <= tol_kkt
     iterative = (reason == int(Reason.CONVERGED)) | (reason == int(Reason.MAX_ITERATIONS)) | (
         reason == int(Reason.STALLED))

@@ -65,10 +65,9 @@ class ModelMPC(Policy):
             given, replaces its ``max_iter``).
         start_iter: iterations of an episode's first solve (default: the larger of ``max_iter`` and the
             model's ``start_iter``).  With a small ``max_iter`` this is the usual real-time scheme: one full
-            solve from
-            cold, then a few iterations a step from the shifted plan (a plan that is not certified after
-            them says so in :meth:`info`).  Elements of a batch at their first step and the others are
-            solved separately, each with its own settings.
+            solve from cold, then a few iterations a step from the shifted plan (a plan that is not
+            certified after them says so in :meth:`info`).  Elements of a batch at their first step and the
+            others are solved separately, each with its own settings.
         compile: run the solver's sweeps as compiled programs (``ILQROptions.compile``: built once per
             problem structure and cached on disk; the MuJoCo calls stay in Python).
         sampling_start: add the sampling planner's plan (:func:`learning.sampling_mpc.sampling_guess`: MPPI

@@ -310,3 +310,13 @@ def test_an_optimum_where_everything_is_zero_is_certified():
     far = ilqr(dataclasses.replace(p, x0=torch.tensor([[2.0, 0.0]], dtype=D)), grad="none",
                options=ILQROptions(mu_init=1e12, mu_max=1e14, max_iter=2))
     assert far.status.reason_names() != ["CONVERGED"]
+
+
+def test_tol_kkt_zero_certifies_nothing_but_an_exact_zero():
+    """``tol_kkt = 0`` (certify nothing): the scale's floor ``tol / tol_kkt`` is 0 then, not a division by
+    zero, and a point with any residual is not CONVERGED."""
+    sys_, cost, x0, umax = _swingup(B=2)
+    sol = ilqr(ILQRProblem(sys_, cost, x0, T, -umax, umax), grad="none",
+               options=ILQROptions(max_iter=3, tol_kkt=0.0))
+    assert (sol.status.reason != int(Reason.CONVERGED)).all()
+    assert bool(torch.isfinite(sol.kkt_residual).all())
