@@ -8,13 +8,16 @@
   PendulumSwingUp uses rl-baselines3-zoo's tuned Pendulum-v1 settings (our task has Pendulum-v1's
   physics, reward and horizon; actions are normalized to ``[-1, 1]``).
 * :func:`make_agent` builds an agent on an :class:`~learning.sb3.SB3VecEnv` (a natively batched env).
-* Foreign gymnasium ids (any registered id outside the ``liecontrol/`` namespace, e.g. ``"Pendulum-v1"``):
-  the agent trains on SB3's own vectorized env of ``gymnasium.make(id)`` (``make_vec_env``: a
-  ``DummyVecEnv`` of ``Monitor``-wrapped envs), seeded as a task's (below), with the rl-baselines3-zoo's
-  tuned hyperparameters (:mod:`learning.zoo_hyperparams`; the zoo's ``normalize: true``, i.e.
-  ``VecNormalize``, is **not** applied and a note says so), and is evaluated by :func:`learning.evaluate` on
-  the id (actions in the env's units).  Only SB3's own policies (``"MlpPolicy"``) train there: the
-  project's MPC policies need a task.  An ``Env`` instance is refused (give its id).
+* Foreign gymnasium envs — a registered id outside the ``liecontrol/`` namespace (``"Pendulum-v1"``), an
+  ``Env``, a ``VectorEnv`` or a factory of envs, made an :class:`~learning.env_source.EnvSource`: the
+  agent trains on SB3's ``DummyVecEnv`` of ``Monitor``-wrapped envs — the ``Env`` given first (SB3 trains
+  on the env it is given), then fresh copies — or on the ``VectorEnv`` given itself (its ``num_envs``
+  sub-envs, through :class:`~learning.sb3.SB3VecEnv`); it is seeded as a task's (below), with the
+  rl-baselines3-zoo's tuned hyperparameters where the zoo has the env's id
+  (:mod:`learning.zoo_hyperparams`; the zoo's ``normalize: true``, i.e. ``VecNormalize``, is **not**
+  applied and a note says so), and is evaluated by :func:`learning.evaluate` on fresh copies of the env
+  (actions in the env's units), never on the env it trains on.  Only SB3's own policies
+  (``"MlpPolicy"``) train there: the project's MPC policies need a task.
 * TD3's ``noise_type`` (``"normal"`` / ``"ornstein-uhlenbeck"``) and ``noise_std`` are hyperparameters here
   (JSON, recordable) that :func:`make_agent` turns into SB3's ``action_noise``; a ``policy_kwargs`` entry
   of the hyperparameters is the policy's keyword arguments unless ``policy_kwargs`` is given; a string
@@ -51,6 +54,7 @@ import json
 import math
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -58,6 +62,7 @@ import numpy as np
 import torch
 
 from learning._policy_io import POLICIES, decode, encode, policy_class, policy_name, register_policy
+from learning.env_source import EnvSource, env_source, is_env_like
 from learning.envs.single import int_arg, make_task
 from learning.envs.task import Task
 
@@ -138,42 +143,39 @@ def is_foreign_id(task: Any) -> bool:
     return isinstance(task, str) and is_foreign(task)
 
 
-def _target(task: Any, where: str) -> Task | str:
-    """A :class:`Task`, or a foreign gymnasium id (kept as the string)."""
-    import gymnasium as gym
-
-    if is_foreign_id(task):
-        return task
-    if isinstance(task, (gym.Env, gym.vector.VectorEnv)):
-        raise TypeError(f"{where}: argument 'task' must be a task or a registered gymnasium id (SB3 builds "
-                        f"its own copies of the env), got an env instance {task!r}; pass its id")
+def _target(task: Any, where: str) -> Task | EnvSource:
+    """A :class:`Task`, or an :class:`~learning.env_source.EnvSource` of a foreign gymnasium id, ``Env``,
+    ``VectorEnv`` or factory."""
+    if isinstance(task, EnvSource) or is_foreign_id(task) or is_env_like(task):
+        return env_source(task, where)
     return make_task(task)
 
 
-def _name(target: Task | str) -> str:
-    return target if isinstance(target, str) else target.name
+def _name(target: Task | EnvSource) -> str:
+    return target.name
 
 
-def hyperparams(algo: str, task: Task | str) -> dict[str, Any]:
+def hyperparams(algo: str, task: Any) -> dict[str, Any]:
     """A copy of the default hyperparameters of ``algo`` on ``task`` (its name's entry, else ``"*"``; a
-    foreign gymnasium id: the rl-baselines3-zoo's, :func:`learning.zoo_hyperparams.zoo_hyperparams`)."""
+    foreign gymnasium env: the rl-baselines3-zoo's for its id,
+    :func:`learning.zoo_hyperparams.zoo_hyperparams`)."""
     a = _algo(algo)
     target = _target(task, "hyperparams")
-    if isinstance(target, str):
+    if isinstance(target, EnvSource):
         from learning.zoo_hyperparams import zoo_hyperparams
 
-        return zoo_hyperparams(a, target)[0]
+        return zoo_hyperparams(a, target.name)[0]
     table = {"ppo": PPO_DEFAULTS, "sac": SAC_DEFAULTS, "td3": TD3_DEFAULTS}[a]
     return copy.deepcopy(table.get(target.name, table["*"]))
 
 
-def default_budget(algo: str, task: Task | str) -> int:
+def default_budget(algo: str, task: Any) -> int:
     """Default training budget (environment steps) of ``algo`` on ``task`` (:data:`DEFAULT_BUDGETS`, TD3
     taking SAC's where a task names none; a foreign id: :data:`FOREIGN_BUDGETS`)."""
     a = _algo(algo)
     target = _target(task, "default_budget")
-    if isinstance(target, str):
-        return int(FOREIGN_BUDGETS.get(target, FOREIGN_BUDGETS["*"])[a])
+    if isinstance(target, EnvSource):
+        return int(FOREIGN_BUDGETS.get(target.name, FOREIGN_BUDGETS["*"])[a])
     row = DEFAULT_BUDGETS.get(target.name, DEFAULT_BUDGETS["*"])
     return int(row.get(a, row["sac"]))
 
@@ -234,19 +236,22 @@ def _sb3_kwargs(kw: dict[str, Any], action_space) -> dict[str, Any]:
     return kw
 
 
-def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None = None,
+def make_agent(algo: str, task: Any, seed: int = 0, num_envs: int | None = None,
                tensorboard_log: str | Path | None = None, device: str = "cpu",
                params: dict[str, Any] | None = None, policy: Any = "MlpPolicy",
                policy_kwargs: dict[str, Any] | None = None):
     """A fresh SB3 agent (``PPO``, ``SAC`` or ``TD3``, ``MlpPolicy``) on ``num_envs`` batched training
     environments of ``task`` (an :class:`~learning.sb3.SB3VecEnv` in a ``VecMonitor``; a foreign gymnasium
-    id: SB3's ``make_vec_env(id, num_envs)``).
+    env: a ``DummyVecEnv`` of ``Monitor``-wrapped envs — the ``Env`` given first, then copies — or the
+    ``VectorEnv`` given, module docstring).
 
     Args:
         algo: ``"ppo"``, ``"sac"`` or ``"td3"``.
-        task: a :class:`Task` or its name, or a registered gymnasium id (module docstring).
+        task: a :class:`Task` or its name, or a foreign gymnasium env: a registered id, an ``Env``, a
+            ``VectorEnv`` or a factory of envs (module docstring).
         seed: training seed (module docstring for the env seeds it implies).
-        num_envs: training environments (default: the hyperparameters' ``n_envs``).
+        num_envs: training environments (default: the hyperparameters' ``n_envs``; a ``VectorEnv`` given:
+            its ``num_envs``, and another value is a ``ValueError``).
         tensorboard_log: folder for SB3's TensorBoard logs (needs the ``tensorboard`` package).
         device: torch device of the networks.
         params: hyperparameters (default :func:`hyperparams`); ``n_envs`` is taken out of them, a
@@ -263,18 +268,18 @@ def make_agent(algo: str, task: Task | str, seed: int = 0, num_envs: int | None 
 
     task = _target(task, "make_agent")
     kw = hyperparams(algo, task) if params is None else copy.deepcopy(dict(params))
-    n = int(kw.pop("n_envs", 1) if num_envs is None else num_envs)
+    n = (int_arg(kw.pop("n_envs", 1), "params['n_envs']", "make_agent") if num_envs is None
+         else int_arg(num_envs, "num_envs", "make_agent"))
     kw.pop("n_envs", None)
     algo_cls = _sb3_class(algo)
-    if isinstance(task, str):  # a foreign gymnasium id: SB3's own vectorized env of gymnasium.make(id)
-        from stable_baselines3.common.env_util import make_vec_env
-
+    if isinstance(task, EnvSource):  # a foreign gymnasium env
         ours = (policy in POLICIES if isinstance(policy, str)
                 else not getattr(policy, "__module__", "").startswith("stable_baselines3"))
         if ours or (policy_kwargs or {}).get("warm_start"):
-            raise ValueError(f"make_agent: on the gymnasium id {task!r} only SB3's own policies train (e.g. "
-                             f"'MlpPolicy'), got policy {policy!r}; the project's MPC policies need a task")
-        env = make_vec_env(task, n_envs=n)  # a DummyVecEnv of Monitor-wrapped envs
+            raise ValueError(f"make_agent: on the gymnasium env {task.name!r} only SB3's own policies train "
+                             f"(e.g. 'MlpPolicy'), got policy {policy!r}; the project's MPC policies need a "
+                             "task")
+        env = _training_env(task, num_envs if task.is_vector else n)
     else:
         venv = SB3VecEnv(task, n)
         if isinstance(policy, str) and policy in POLICIES:  # a registered name (SB3 knows only its aliases)
@@ -320,7 +325,7 @@ class TrainResult:
         return {"steps": list(self.steps), "returns": list(self.returns), "success": list(self.success)}
 
 
-def _curve_point(model, task: Task | str, seeds: list[int]) -> tuple[float, float]:
+def _curve_point(model, task: Task | EnvSource, seeds: list[int]) -> tuple[float, float]:
     """``(mean return, success rate)``; the success rate is NaN on an env that defines no success."""
     from learning.evaluate import evaluate
 
@@ -330,7 +335,37 @@ def _curve_point(model, task: Task | str, seeds: list[int]) -> tuple[float, floa
     return float(np.mean(r.returns)), succ
 
 
-def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_every: int | None = None,
+def _foreign_notes(algo: str, src: EnvSource, kw: dict[str, Any], zoo: bool,
+                   num_envs: int | None) -> list[str]:
+    """What :func:`train` says of a foreign env: the hyperparameters' source, the zoo's ``VecNormalize``
+    left out, and which envs train and evaluate; a ``VectorEnv`` given sets ``kw["n_envs"]``."""
+    from learning.zoo_hyperparams import ZOO_HP_SOURCE, ZOO_NORMALIZE, zoo_hyperparams
+
+    notes = []
+    if zoo:
+        note = zoo_hyperparams(algo, src.name)[1]
+        notes.append(note or f"{algo} hyperparameters on {src.name}: {ZOO_HP_SOURCE}")
+        if algo in ZOO_NORMALIZE.get(src.name, ()):
+            notes.append(f"the zoo trains {algo} on {src.name} with VecNormalize (normalize: true); not "
+                         "applied here: the agent sees raw observations and rewards")
+    if src.is_vector:
+        k = src.instance.num_envs
+        if num_envs is not None and int(num_envs) != k:
+            raise ValueError(f"train: argument 'num_envs' is {num_envs} but the VectorEnv given has {k} "
+                             "sub-envs (the agent trains on it as it is)")
+        if int(kw.get("n_envs", k)) != k:
+            notes.append(f"{algo} trains on the {k} sub-envs of the VectorEnv given (the hyperparameters "
+                         f"name n_envs={kw['n_envs']})")
+        kw["n_envs"] = k
+        notes.append(f"{algo} trains on the VectorEnv given; its evaluations run on fresh copies of one "
+                     f"sub-env ({src.how})")
+    elif src.instance is not None:
+        notes.append(f"{algo} trains on the env given (and copies of it, {src.how}, where it has more "
+                     "than one training env); its evaluations run on fresh copies")
+    return notes
+
+
+def train(algo: str, task: Any, budget_steps: int, seed: int = 0, eval_every: int | None = None,
           eval_episodes: int = 16, out_dir: str | Path | None = None, *, num_envs: int | None = None,
           params: dict[str, Any] | None = None, tensorboard: bool = True, device: str = "cpu",
           log=None, policy: Any = "MlpPolicy", policy_kwargs: dict[str, Any] | None = None,
@@ -364,16 +399,11 @@ def train(algo: str, task: Task | str, budget_steps: int, seed: int = 0, eval_ev
     seeds = eval_seeds(int_arg(eval_episodes, "eval_episodes", "train"))
     kw = hyperparams(algo, task) if params is None else dict(params)
     if num_envs is not None:
-        kw["n_envs"] = int(num_envs)
+        kw["n_envs"] = int_arg(num_envs, "num_envs", "train")
     notes: list[str] = []
-    if isinstance(task, str) and params is None:
-        from learning.zoo_hyperparams import ZOO_HP_SOURCE, ZOO_NORMALIZE, zoo_hyperparams
-
-        note = zoo_hyperparams(algo, task)[1]
-        notes.append(note or f"{algo} hyperparameters on {task}: {ZOO_HP_SOURCE}")
-        if algo in ZOO_NORMALIZE.get(task, ()):
-            notes.append(f"the zoo trains {algo} on {task} with VecNormalize (normalize: true); not applied "
-                         "here: the agent sees raw observations and rewards")
+    if isinstance(task, EnvSource):
+        check_episode_limit(task, "train")
+        notes += _foreign_notes(algo, task, kw, params is None, num_envs)
     if algo == "ppo":
         n_envs, n_steps = int(kw.get("n_envs", 1)), int(kw.get("n_steps", 2048))
         if n_envs * n_steps > budget_steps:  # a budget below one rollout: shorter rollouts, not overshoot
@@ -466,10 +496,24 @@ def save_agent(res: TrainResult, out_dir: str | Path, **extra) -> dict[str, str]
     state = {k: v.detach().cpu().clone() for k, v in res.model.policy.state_dict().items()}
     torch.save(state, paths["pt"])
     meta = {"algo": res.algo, "task": res.task, "seed": res.seed, **rebuild,
-            "num_timesteps": res.num_timesteps, "train_time_s": res.train_time_s,
-            "eval_time_s": res.eval_time_s, "curve": res.curve(), "notes": res.notes, **extra}
+            "spaces": _spaces_record(res.model), "num_timesteps": res.num_timesteps,
+            "train_time_s": res.train_time_s, "eval_time_s": res.eval_time_s, "curve": res.curve(),
+            "notes": res.notes, **extra}
     Path(paths["json"]).write_text(json.dumps(jsonable(meta), indent=1, allow_nan=False) + "\n")
     return paths
+
+
+def _spaces_record(model) -> dict[str, Any]:
+    """The agent's observation and action spaces as JSON (a ``Box``: shape, dtype, bounds; else its text),
+    which :func:`load_agent` checks an agent of a foreign env against."""
+    from learning.evaluate import jsonable
+
+    def one(sp):
+        if isinstance(getattr(sp, "low", None), np.ndarray):
+            return jsonable({"shape": list(sp.shape), "dtype": str(sp.dtype), "low": sp.low, "high": sp.high})
+        return {"text": str(sp)}
+
+    return {"observation": one(model.observation_space), "action": one(model.action_space)}
 
 
 def read_agent_meta(path: str | Path) -> dict[str, Any]:
@@ -539,7 +583,8 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     name recorded: an SB3 alias or a :func:`register_policy` entry) and its keyword arguments in
     ``agent.json``, and its policy weights are read with ``torch.load(..., weights_only=True)``: plain
     tensors, no code runs.  A file written before policies were recorded holds an ``MlpPolicy``.  An agent
-    made on a foreign gymnasium id (``task`` in ``agent.json`` is the id) is rebuilt on SB3's env of it.
+    made on a foreign gymnasium env (``task`` in ``agent.json`` is its id, or its class's name) is rebuilt on
+    copies of it (``task``: the env, a factory or its id; needed where it has no registered id).
 
     ``path`` may instead name an SB3 ``.zip``; it is loaded only with ``trust_zip=True``.  **Warning:**
     SB3 zip files contain pickled Python objects that ``load`` unpickles, so a model file from an
@@ -549,7 +594,10 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     ``agent.json`` is checked before anything is built: an entry of the wrong JSON type (``params`` or
     ``policy_kwargs`` not an object, ``seed`` not an int, a recorded hyperparameter or policy argument of the
     wrong type, e.g. ``n_steps: "32"``), hyperparameters or policy arguments that SB3 or the policy refuse,
-    and weights that do not fit the policy described are a ``ValueError`` naming the file and the key.
+    and weights that do not fit the policy described are a ``ValueError`` naming the file and the key.  An
+    agent of a foreign env is also checked against the env given: its observation and action spaces must
+    be those recorded (``agent.json``'s ``spaces``; the same id built with other wrappers or arguments is a
+    ``ValueError``; files written before spaces were recorded are not checked).
     """
     p = Path(path)
     if p.suffix == ".zip":
@@ -567,9 +615,17 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     algo = meta["algo"] if algo is None else _algo(algo)
     if algo != meta["algo"]:
         raise ValueError(f"load_agent: {pt} holds a {meta['algo']} agent, not {algo}")
-    task = _target(meta["task"] if task is None else task, "load_agent")
+    try:
+        task = _target(meta["task"] if task is None else task, "load_agent")
+    except ValueError as e:
+        if task is not None:
+            raise
+        raise ValueError(f"load_agent: {pt} was trained on {meta['task']!r}, neither a task nor a registered "
+                         "gymnasium id: pass task= the env (or a factory of it)") from e
     if _name(task) != meta["task"]:
         raise ValueError(f"load_agent: {pt} was trained on {meta['task']}, not {_name(task)}")
+    if isinstance(task, EnvSource):  # rebuilt on copies: the env given is not stepped
+        task = task.detached()
     policy_label = meta.get("policy", "MlpPolicy")
     policy = policy_class(_sb3_class(algo), policy_label)
     pk = meta["policy_kwargs"]
@@ -585,16 +641,58 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     except RuntimeError as e:
         raise ValueError(f"load_agent: the weights in {pt} do not fit the policy that {meta_path} describes "
                          f"(keys 'policy' / 'policy_kwargs'): {e}") from e
+    saved = meta.get("spaces")
+    if isinstance(task, EnvSource) and isinstance(saved, dict):  # same id, other wrappers or arguments?
+        now = _spaces_record(model)
+        for k in ("observation", "action"):
+            if k in saved and saved[k] != now[k]:
+                raise ValueError(f"load_agent: {pt} was trained on {meta['task']} with the {k} space "
+                                 f"{saved[k]}, but the env given has {now[k]} (other wrappers or arguments; "
+                                 f"{meta_path}, key 'spaces')")
     model.num_timesteps = meta.get("num_timesteps", 0)
     return model
 
 
-def _one_env(target: Task | str):
-    """One training-style SB3 env of a task or a foreign id."""
-    if isinstance(target, str):
-        from stable_baselines3.common.env_util import make_vec_env
+def _training_env(src: EnvSource, n: int | None):
+    """SB3's training env of a foreign gymnasium env: the ``VectorEnv`` given (its ``num_envs``; ``n``, when
+    given, must agree), else a ``DummyVecEnv`` of ``n`` ``Monitor``-wrapped envs (the ``Env`` given first);
+    in SB3's ``VecCheckNan``, so that a NaN/inf observation or reward from the env is a ``ValueError`` saying
+    so, not an error deep in the policy's distribution."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecCheckNan, VecMonitor
 
-        return make_vec_env(target, n_envs=1)
+    from learning.sb3 import SB3VecEnv
+
+    if src.is_vector:
+        k = src.instance.num_envs
+        if n is not None and int(n) != k:
+            raise ValueError(f"make_agent: argument 'num_envs' is {n} but the VectorEnv given has {k} "
+                             "sub-envs (the agent trains on it as it is)")
+        return VecCheckNan(VecMonitor(SB3VecEnv(src.instance)), raise_exception=True)
+    return VecCheckNan(DummyVecEnv([partial(_monitored, f) for f in src.training_factories(n)]),
+                       raise_exception=True)
+
+
+def check_episode_limit(src: EnvSource, where: str) -> None:
+    """A ``ValueError`` unless the copies of ``src`` end their episodes (a ``TimeLimit``, or a spec's
+    ``max_episode_steps``): the held-out evaluations run whole episodes."""
+    from learning.env_source import episode_limit
+
+    if episode_limit(src) is None:
+        raise ValueError(f"{where}: the env {src.name!r} has no episode limit (no max_episode_steps in its "
+                         "spec, no TimeLimit wrapper) and the evaluations run whole episodes: wrap it in "
+                         "gymnasium.wrappers.TimeLimit(env, max_episode_steps) (or register it with one)")
+
+
+def _monitored(make):
+    from stable_baselines3.common.monitor import Monitor
+
+    return Monitor(make())
+
+
+def _one_env(target: Task | EnvSource):
+    """One training-style SB3 env of a task or of copies of a foreign env."""
+    if isinstance(target, EnvSource):
+        return _training_env(target.detached(), 1)
     from learning.sb3 import SB3VecEnv
 
     return SB3VecEnv(target, 1)

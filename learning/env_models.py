@@ -119,6 +119,10 @@ def _base_id(env_id: str) -> str:
     return env_id.split(":", 1)[-1]
 
 
+def _unwrapped(env: Any) -> Any:
+    return getattr(env, "unwrapped", env)
+
+
 def env_model(env: Any) -> EnvModel:
     """The :class:`EnvModel` of a gymnasium id, ``Env`` or ``VectorEnv`` (checked against the env's spaces
     when an env is given).  An env without a registered model is a ``ValueError`` saying how to give one."""
@@ -126,7 +130,8 @@ def env_model(env: Any) -> EnvModel:
         return env
     eid = env_id_of(env)
     if eid is None or _base_id(eid) not in ENV_MODELS:
-        raise ValueError(f"env_model: no model is registered for {eid or type(env).__name__!r} (known: "
+        what = eid or type(_unwrapped(env)).__name__
+        raise ValueError(f"env_model: no model is registered for {what!r} (known: "
                          f"{sorted(ENV_MODELS)}); an MPC on a foreign env needs a System, a cost and an "
                          "observation->state map: build an EnvModel and register_env_model(id, factory)")
     model = ENV_MODELS[_base_id(eid)](None if isinstance(env, str) else env)
@@ -190,13 +195,25 @@ def _check_time_step(model: EnvModel, env: Any) -> None:
                          "system from this env (MujocoSystem.from_env) or with its time step")
 
 
+def _clipped_action_space(env: Any):
+    """The action space inside a ``ClipAction`` wrapper of ``env`` (or of its first sub-env), else ``None``:
+    gymnasium 1.x's ``ClipAction`` widens the action space to ±inf and clips to the inner box, which is the
+    box the model must match."""
+    e = _first_env(env)
+    while isinstance(e, gym.Wrapper):
+        if isinstance(e, gym.wrappers.ClipAction):
+            return e.env.action_space
+        e = e.env
+    return None
+
+
 def check_model(model: EnvModel, env: Any) -> None:
     """A ``TypeError``/``ValueError`` naming the mismatch when ``model`` does not fit ``env``: its spaces
     (1-d ``Box`` es, the action dimension and bounds), the observation map's output shape, the time step
     (``system.dt`` against ``env.unwrapped.dt`` where both exist), and the env itself
     (:data:`NEUTRAL_WRAPPERS` only, the registered constructor arguments)."""
     vec = isinstance(env, gym.vector.VectorEnv)
-    aspace = env.single_action_space if vec else env.action_space
+    aspace = _clipped_action_space(env) or (env.single_action_space if vec else env.action_space)
     ospace = env.single_observation_space if vec else env.observation_space
     m = check_box_env(aspace, ospace, "env_model")
     if m != model.m:

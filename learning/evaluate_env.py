@@ -38,8 +38,11 @@ __all__ = ["evaluate_env", "is_foreign", "env_id_of", "check_box_env"]
 
 def is_foreign(task: Any) -> bool:
     """Whether ``task`` names a gymnasium environment that is not one of the project's tasks: an ``Env``, a
-    ``VectorEnv``, or a registered id outside the ``liecontrol/`` namespace."""
-    if isinstance(task, (gym.Env, gym.vector.VectorEnv)):
+    ``VectorEnv``, an :class:`~learning.env_source.EnvSource`, an ``Env`` subclass or a factory of envs (a
+    callable that is not a class), or a registered id outside the ``liecontrol/`` namespace."""
+    from learning.env_source import is_env_like
+
+    if not isinstance(task, str) and is_env_like(task):
         return True
     if isinstance(task, str) and not task.startswith("liecontrol/"):
         from learning.envs import TASKS
@@ -85,6 +88,10 @@ def _make_vector(env: Any, N: int, T: int | None, env_kwargs: dict | None):
     if env_kwargs:
         raise ValueError("evaluate: 'task_kwargs' apply to a gymnasium id only (they go to gym.make); an env "
                          "instance is run as it was built")
+    from learning.env_source import EnvSource
+
+    if isinstance(env, EnvSource):  # fresh copies, as for an id
+        return env.copies(N), env.make, env.name
     if isinstance(env, gym.vector.VectorEnv):
         mode = env.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP)
         if mode == AutoresetMode.DISABLED or mode == "Disabled":
@@ -272,16 +279,24 @@ def evaluate_env(policy: Any, env: Any, *, num_envs: int = 16, seeds: list[int],
         policy: anything :func:`learning.policies.as_policy` accepts, acting in the env's units, or
             ``"mpc"`` for the env's registered model MPC (:func:`learning.env_models.env_model`).
         env: a registered id (``num_envs`` copies are made, ``max_episode_steps`` and ``env_kwargs`` passed
-            to ``gym.make``), an ``Env`` (run as is, one episode at a time) or a ``VectorEnv`` (as many
+            to ``gym.make``), an :class:`~learning.env_source.EnvSource` or a factory of envs (an ``Env``
+            subclass, a zero-argument callable; ``num_envs`` fresh copies made by its factory;
+            ``max_episode_steps`` then truncates the episodes here), an ``Env`` (run as is,
+            one episode at a time) or a ``VectorEnv`` (as many
             episodes at a time as it has sub-envs; its autoreset mode must not be ``DISABLED``).
         seeds: one episode per seed.
     Returns:
         an :class:`~learning.evaluate.EvalResult`.
     """
+    from learning.env_source import EnvSource
     from learning.evaluate import EvalResult, _policy_name, _progress_bar
 
+    if not isinstance(env, (str, EnvSource, gym.Env, gym.vector.VectorEnv)):  # a factory: its copies
+        from learning.env_source import env_source
+
+        env = env_source(env, "evaluate")
     E = len(seeds)
-    if isinstance(env, str):
+    if isinstance(env, (str, EnvSource)):
         N = min(num_envs, E)
     else:  # an instance runs all its sub-envs (the seeds padded)
         N = env.num_envs if isinstance(env, gym.vector.VectorEnv) else 1
@@ -348,6 +363,13 @@ def _time_limit(env) -> int | None:
 def _spec_steps(venv) -> int:
     envs = getattr(venv, "envs", None)
     T = _time_limit(envs[0]) if envs else _time_limit(venv)
+    fns = getattr(getattr(venv, "unwrapped", venv), "env_fns", None)
+    if T is None and not envs and fns:  # e.g. an AsyncVectorEnv: its sub-envs are elsewhere, build one here
+        probe = fns[0]()
+        try:
+            T = _time_limit(probe)
+        finally:
+            probe.close()
     if T is None:
         raise ValueError("evaluate: the env has no episode limit (no max_episode_steps in its spec, no "
                          "TimeLimit wrapper): give 'max_episode_steps'")

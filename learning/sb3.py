@@ -1,11 +1,15 @@
-"""stable-baselines3 adapter: :class:`SB3VecEnv` exposes a :class:`learning.vector.TaskVectorEnv` as an SB3
-``VecEnv`` (SB3 does not accept gymnasium vector envs).
+"""stable-baselines3 adapter: :class:`SB3VecEnv` exposes a :class:`learning.vector.TaskVectorEnv` — or any
+gymnasium ``VectorEnv`` — as an SB3 ``VecEnv`` (SB3 does not accept gymnasium vector envs).
 
-It runs the batched env in ``SAME_STEP`` autoreset mode with numpy outputs and converts to SB3's
-conventions: ``dones = terminated | truncated``, and for every environment whose episode ended the info
-dict carries ``"terminal_observation"`` (the last observation of the ended episode; the returned
-observation is already the first of the next one) and ``"TimeLimit.truncated"`` (truncated and not
-terminated) — without them PPO/SAC bootstrap wrongly at time limits.  An invalid step (non-finite action)
+It converts to SB3's conventions: ``dones = terminated | truncated``, and for every environment whose
+episode ended the info dict carries ``"terminal_observation"`` (the last observation of the ended episode;
+the returned observation is already the first of the next one) and ``"TimeLimit.truncated"`` (truncated
+and not terminated) — without them PPO/SAC bootstrap wrongly at time limits.  A task's env runs in
+``SAME_STEP`` autoreset mode with numpy outputs.  A gymnasium vector env runs in the mode it was built with:
+``SAME_STEP`` gives the ended episodes' last observations in ``info["final_obs"]``; under ``NEXT_STEP``
+(gymnasium's default) and ``DISABLED`` the step's observation is the last one, and the ended sub-envs are
+reset at once (``reset(options={"reset_mask": ended})``, without seeds: they go on from their own
+generators), so no step of an episode is lost or invented.  An invalid step of a task (non-finite action)
 adds ``"invalid": True``; the env truncates such an episode, so it also carries
 ``"TimeLimit.truncated": True`` — SB3 then bootstraps from the last valid observation, as it would at a
 time limit (filter on ``"invalid"`` to treat it otherwise).  Works with PPO, SAC, ``VecMonitor``,
@@ -18,6 +22,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any
 
+import gymnasium as gym
 import numpy as np
 from gymnasium.vector import AutoresetMode
 from stable_baselines3.common.vec_env import VecEnv
@@ -31,23 +36,27 @@ class SB3VecEnv(VecEnv):
     """An SB3 ``VecEnv`` over ``num_envs`` environments of a task (module docstring).
 
     Args:
-        task: a :class:`TaskVectorEnv` built with ``autoreset_mode=SAME_STEP`` and ``output="numpy"``, or
-            a task (instance, class or name) to build one from.
+        task: a :class:`TaskVectorEnv` built with ``autoreset_mode=SAME_STEP`` and ``output="numpy"``, any
+            other gymnasium ``VectorEnv`` (any autoreset mode), or a task (instance, class or name) to
+            build a :class:`TaskVectorEnv` from.
         num_envs, **kwargs: passed to :class:`TaskVectorEnv` when ``task`` is not an env.
     """
 
     def __init__(self, task: Any = "PendulumSwingUp", num_envs: int = 1, **kwargs):
-        if isinstance(task, TaskVectorEnv):
+        if isinstance(task, gym.vector.VectorEnv):
             if kwargs:
-                raise ValueError("SB3VecEnv: extra arguments given with an existing TaskVectorEnv")
-            if task.autoreset_mode != AutoresetMode.SAME_STEP or task.output != "numpy":
+                raise ValueError("SB3VecEnv: extra arguments given with an existing vector env")
+            base = task.unwrapped
+            if isinstance(base, TaskVectorEnv) and (base.autoreset_mode != AutoresetMode.SAME_STEP
+                                                    or base.output != "numpy"):
                 raise ValueError("SB3VecEnv: the TaskVectorEnv must use autoreset_mode=SAME_STEP and "
-                                 f"output='numpy', got {task.autoreset_mode} and {task.output!r}")
+                                 f"output='numpy', got {base.autoreset_mode} and {base.output!r}")
             venv = task
         else:
             venv = TaskVectorEnv(task, num_envs, autoreset_mode=AutoresetMode.SAME_STEP, output="numpy",
                                  **kwargs)
         self.venv = venv
+        self.autoreset_mode = AutoresetMode(venv.metadata.get("autoreset_mode", AutoresetMode.NEXT_STEP))
         self._actions: np.ndarray | None = None
         super().__init__(venv.num_envs, venv.single_observation_space, venv.single_action_space)
 
@@ -66,19 +75,26 @@ class SB3VecEnv(VecEnv):
 
     def step_wait(self):
         obs, rew, term, trunc, info = self.venv.step(self._actions)
+        term, trunc = np.asarray(term, dtype=bool), np.asarray(trunc, dtype=bool)
         dones = term | trunc
         infos: list[dict[str, Any]] = [{} for _ in range(self.num_envs)]
         ended = np.flatnonzero(dones)
         if ended.size:
-            final = info["final_obs"]
+            if self.autoreset_mode == AutoresetMode.SAME_STEP:
+                final, final_info = info["final_obs"], info.get("final_info", {})
+            else:  # the step's observations end the episodes: reset the ended sub-envs now
+                final, final_info = np.array(obs, copy=True), info
+                fresh, _ = self.venv.reset(options={"reset_mask": dones})
+                obs = np.array(obs, copy=True)
+                obs[ended] = np.asarray(fresh)[ended]
             for i in ended:  # only the environments whose episode ended (SB3's API is a list of dicts)
                 infos[i] = {"terminal_observation": final[i],
                             "TimeLimit.truncated": bool(trunc[i] and not term[i])}
-            bad = info["final_info"].get("invalid")
+            bad = final_info.get("invalid") if isinstance(final_info, dict) else None
             if bad is not None:
-                for i in np.flatnonzero(bad):
+                for i in np.flatnonzero(np.asarray(bad, dtype=bool) & dones):
                     infos[i]["invalid"] = True
-        return obs, rew.astype(np.float32, copy=False), dones, infos
+        return obs, np.asarray(rew).astype(np.float32, copy=False), dones, infos
 
     def close(self) -> None:
         self.venv.close()

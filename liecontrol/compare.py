@@ -11,7 +11,10 @@ itself (returns are the env's own), and the report's one table gives per policy 
 the RL steps to match the MPC's mean return, the milliseconds per action at batch 1 and the zoo's
 published score (:mod:`learning.zoo`, "not published" where it has none); a success rate only where the env
 gives ``info["is_success"]``.  A foreign id without a registered model is refused unless ``mpc=False``
-(``--no-mpc``): then only the agents are trained and compared.
+(``--no-mpc``): then only the agents are trained and compared.  From Python, :func:`compare` also takes an
+``Env``, a ``VectorEnv`` or a factory of envs (:mod:`learning.env_source`): it is the recipe — every agent
+trains on its own copies, everything is evaluated on fresh ones, the MPC's model is checked against the env
+given, and the report names how the copies were made.
 
 For each training seed and algorithm the agent is trained by :func:`learning.baselines.train` (or, with
 ``--load DIR``, rebuilt from the ``policy.pt`` weights a previous run saved, without training), its learning
@@ -53,6 +56,7 @@ import signal
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -191,7 +195,7 @@ class _Workers:
 
 
 @restores_threads
-def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | None = None,
+def compare(env: Any, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | None = None,
             seeds=(0, 1, 2), eval_episodes: int | None = None, eval_every: int | None = None,
             num_envs: int | None = None, train_envs: int | None = None, out: str | Path | None = None,
             load: str | Path | None = None, mpc: bool = True, mpc_horizon: int | None = None,
@@ -208,6 +212,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
     ``eval_every``: environment steps between two learning-curve points (default: a twentieth of the
     budget); every curve also has a point before training and one after its last step."""
     from learning import baselines as bl
+    from learning.env_source import env_source, is_env_like
     from learning.envs.single import int_arg, make_task
     from learning.evaluate import evaluate, jsonable
 
@@ -218,17 +223,18 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
         resolved = resolve_env(env) if isinstance(env, str) else env
     except argparse.ArgumentTypeError as e:
         raise OptionError("TASK", str(e)) from None
-    foreign = bl.is_foreign_id(resolved)
-    task = resolved if foreign else make_task(resolved)  # a foreign env stays its id (picklable, re-made)
-    name = task if foreign else task.name
-    if foreign and mpc:
-        from learning.env_models import env_model
-
+    foreign = bl.is_foreign_id(resolved) or is_env_like(resolved)
+    # a foreign env: every agent trains on its own copies, everything is evaluated on fresh ones
+    source = env_source(resolved, "compare") if foreign else None
+    task = source.detached() if foreign else make_task(resolved)
+    name = task.name
+    if foreign:
         try:
-            env_model(name)
+            bl.check_episode_limit(source, "compare")
         except ValueError as e:
-            raise OptionError("TASK", f"{e}; or pass --no-mpc (mpc=False) to compare the agents only"
-                              ) from None
+            raise OptionError("TASK", str(e)) from None
+    if foreign and mpc:
+        _check_model(source)
     algos = list(algos)
     seeds = [int_arg(s, "seeds", "compare", 0) for s in seeds]
     if not seeds:
@@ -251,6 +257,12 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
 
     work = [(a, s) for a in algos for s in seeds] if load is None else []
     jobs = min(jobs or os.cpu_count() or 1, max(len(work), 1))
+    if foreign:
+        record["env_copies"] = task.how
+        if jobs > 1 and not task.picklable():
+            jobs = 1
+            notes.append(f"the agents trained one after another in this process: copies of {name} "
+                         f"({task.how}) cannot go to worker processes (not picklable)")
     progress = TrainingProgress({k: budgets[k[0]] for k in work}, quiet=quiet,
                                 label=lambda k: f"{name} {k[0]} seed {k[1]}", log=log)
 
@@ -270,7 +282,7 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
 
         mpc_res = None
         if mpc:
-            expert = _expert(task, foreign, mpc_horizon)
+            expert = _expert(source if foreign else task, foreign, mpc_horizon)
             say(f"{name}: evaluating the MPC expert (horizon {expert.horizon}) on {E} episodes")
             mpc_res = evaluate(expert, task, seeds=ev_seeds, num_envs=N, progress=not quiet)
             record["mpc"] = _metrics(mpc_res.summary()) | {"horizon": expert.horizon, "eval_seeds": ev_seeds}
@@ -318,18 +330,36 @@ def compare(env: str, *, algos=("ppo", "sac"), budget_steps: dict[str, int] | No
              "curves": str(root / "curves.png")}
     _plot(record, algos, files["curves"])
     Path(files["json"]).write_text(json.dumps(record, indent=1, allow_nan=False) + "\n")
-    report = _report_foreign if foreign else _report
-    Path(files["report"]).write_text(report(record, algos, task, E, N, notes, wall, threads, jobs))
+    if foreign:
+        text = _report_foreign(record, algos, name, E, N, notes, wall, threads, jobs)
+    else:
+        text = _report(record, algos, task, E, N, notes, wall, threads, jobs)
+    Path(files["report"]).write_text(text)
     return record | {"_files": files, "_wall_time_s": wall}
 
 
+def _check_model(source) -> None:
+    """An :class:`OptionError` unless a model is registered for the foreign env and fits it (checked on the
+    env given, else on a fresh copy)."""
+    from learning.env_models import env_model
+
+    env = source.instance if source.instance is not None else source.make()
+    try:
+        env_model(env)
+    except (TypeError, ValueError) as e:
+        raise OptionError("TASK", f"{e}; or pass --no-mpc (mpc=False) to compare the agents only") from None
+    finally:
+        if env is not source.instance:
+            env.close()
+
+
 def _expert(task, foreign: bool, horizon: int | None):
-    """The MPC expert: the task's (:func:`learning.policies.task_expert`), or on a foreign id the model MPC
-    of its registered :class:`~learning.env_models.EnvModel`."""
+    """The MPC expert: the task's (:func:`learning.policies.task_expert`), or on a foreign env the model MPC
+    of its registered :class:`~learning.env_models.EnvModel` (built on the env given, else on its id)."""
     if foreign:
         from learning.model_mpc import model_policy
 
-        return model_policy(task, horizon=horizon)
+        return model_policy(task.instance if task.instance is not None else task.name, horizon=horizon)
     from learning.policies import task_expert
 
     return task_expert(task, horizon=horizon)
@@ -519,8 +549,10 @@ def _report_foreign(rec: dict, algos: list[str], env_id: str, E: int, N: int, no
          (f"- MPC: `learning.model_mpc.ModelMPC` on the env's registered model (`learning.env_models`), "
           f"horizon {mpc['horizon']}, zero training — it is given the model and a cost, an RL agent only "
           "the rewards") if mpc else "- MPC: skipped (--no-mpc)",
-         f"- RL: stable-baselines3 {_sb3_version()} ({', '.join(a.upper() for a in algos)}) on SB3's "
-         f"`make_vec_env('{env_id}')`, training seeds {rec['seeds']} (training env seeds 1000·s + i), "
+         f"- RL: stable-baselines3 {_sb3_version()} ({', '.join(a.upper() for a in algos)}) on a "
+         "`DummyVecEnv` of `Monitor`-wrapped copies of the env "
+         f"({rec.get('env_copies', 'gymnasium.make(id)')}), training seeds {rec['seeds']} "
+         "(training env seeds 1000·s + i), "
          f"budget per seed: {budget_text(rec['budget_steps'])}; the zoo trained with "
          + (", ".join(f"{a.upper()} {zoo_steps[a]}" for a in algos if a in zoo_steps) or "no tuned entry")
          + " steps",

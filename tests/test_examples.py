@@ -65,3 +65,11 @@ def test_gym_pendulum_mpc_brakes_where_the_single_start_swings():
 
     out = main(episodes=2, steps=10, horizon=20, hold_steps=8)
     assert all(out["checks"].values()), out
+
+
+def test_sb3_on_your_own_env_trains_on_the_instance_and_scores_on_copies():
+    from examples.learning.sb3_on_your_env import main
+
+    out = main(steps=256, episodes=2)
+    assert all(out["checks"].values()), out
+    assert out["copies"] == "copy.deepcopy(env)" and out["curve"]["steps"][-1] == 256
