@@ -14,9 +14,10 @@
   on the env it is given), then fresh copies — or on the ``VectorEnv`` given itself (its ``num_envs``
   sub-envs, through :class:`~learning.sb3.SB3VecEnv`); it is seeded as a task's (below), with the
   rl-baselines3-zoo's tuned hyperparameters where the zoo has the env's id
-  (:mod:`learning.zoo_hyperparams`; the zoo's ``normalize: true``, i.e. ``VecNormalize``, is **not**
-  applied and a note says so), and is evaluated by :func:`learning.evaluate` on fresh copies of the env
-  (actions in the env's units), never on the env it trains on.  Only SB3's own policies
+  (:mod:`learning.zoo_hyperparams`; the zoo's ``normalize: true`` is the hyperparameter ``normalize``:
+  SB3's ``VecNormalize`` around the training env, :mod:`learning.sb3_normalize`), and is evaluated by
+  :func:`learning.evaluate` on fresh copies of the env (actions in the env's units, observations normalized
+  by the training statistics where ``normalize``), never on the env it trains on.  Only SB3's own policies
   (``"MlpPolicy"``) train there: the project's MPC policies need a task.
 * TD3's ``noise_type`` (``"normal"`` / ``"ornstein-uhlenbeck"``) and ``noise_std`` are hyperparameters here
   (JSON, recordable) that :func:`make_agent` turns into SB3's ``action_noise``; a ``policy_kwargs`` entry
@@ -65,6 +66,7 @@ from learning._policy_io import POLICIES, decode, encode, policy_class, policy_n
 from learning.env_source import EnvSource, env_source, is_env_like
 from learning.envs.single import int_arg, make_task
 from learning.envs.task import Task
+from learning.sb3_normalize import agent_of, load_obs_rms, save_obs_rms, wrap_normalize
 
 __all__ = ["ALGOS", "PPO_DEFAULTS", "SAC_DEFAULTS", "TD3_DEFAULTS", "DEFAULT_BUDGETS", "FOREIGN_BUDGETS",
            "hyperparams", "default_budget", "is_foreign_id",
@@ -291,6 +293,7 @@ def make_agent(algo: str, task: Any, seed: int = 0, num_envs: int | None = None,
         env = VecMonitor(venv)
     if policy_kwargs is not None:
         kw["policy_kwargs"] = dict(policy_kwargs)
+    env = wrap_normalize(env, kw.pop("normalize", False), kw.get("gamma", 0.99))
     kw = _sb3_kwargs(kw, env.action_space)
     model = algo_cls(policy, env, seed=int(seed), device=device,
                      tensorboard_log=None if tensorboard_log is None else str(tensorboard_log),
@@ -301,9 +304,11 @@ def make_agent(algo: str, task: Any, seed: int = 0, num_envs: int | None = None,
 
 @dataclass
 class TrainResult:
-    """What :func:`train` did: the trained ``model``, its learning curve (``steps``: environment steps at
-    each evaluation, ``returns``: mean evaluation return, ``success``: success rate), the wall time of
-    training alone (evaluations excluded) and of the evaluations, the saved files and notes."""
+    """What :func:`train` did: the trained ``model`` (where the hyperparameters ``normalize``, a
+    :class:`~learning.sb3_normalize.NormalizedModel`: it acts on raw observations), its learning curve
+    (``steps``: environment steps at each evaluation, ``returns``: mean evaluation return, ``success``:
+    success rate), the wall time of training alone (evaluations excluded) and of the evaluations, the saved
+    files and notes."""
 
     model: Any
     algo: str
@@ -338,16 +343,22 @@ def _curve_point(model, task: Task | EnvSource, seeds: list[int]) -> tuple[float
 def _foreign_notes(algo: str, src: EnvSource, kw: dict[str, Any], zoo: bool,
                    num_envs: int | None) -> list[str]:
     """What :func:`train` says of a foreign env: the hyperparameters' source, the zoo's ``VecNormalize``
-    left out, and which envs train and evaluate; a ``VectorEnv`` given sets ``kw["n_envs"]``."""
+    (applied, or left out by the ``params`` given), and which envs train and evaluate; a ``VectorEnv`` given
+    sets ``kw["n_envs"]``."""
     from learning.zoo_hyperparams import ZOO_HP_SOURCE, ZOO_NORMALIZE, zoo_hyperparams
 
     notes = []
     if zoo:
         note = zoo_hyperparams(algo, src.name)[1]
         notes.append(note or f"{algo} hyperparameters on {src.name}: {ZOO_HP_SOURCE}")
-        if algo in ZOO_NORMALIZE.get(src.name, ()):
-            notes.append(f"the zoo trains {algo} on {src.name} with VecNormalize (normalize: true); not "
-                         "applied here: the agent sees raw observations and rewards")
+    if kw.get("normalize"):
+        notes.append(f"{algo} trains on VecNormalize (normalize: {json.dumps(kw['normalize'])}, as the zoo "
+                     "does): observations and rewards normalized by running statistics; its evaluations "
+                     "normalize observations by the training statistics and sum the env's own rewards")
+    elif algo in ZOO_NORMALIZE.get(src.name, ()):
+        notes.append(f"the zoo trains {algo} on {src.name} with VecNormalize (normalize: true); not applied "
+                     "here (the hyperparameters given have no 'normalize'): the agent sees raw observations "
+                     "and rewards")
     if src.is_vector:
         k = src.instance.num_envs
         if num_envs is not None and int(num_envs) != k:
@@ -425,12 +436,13 @@ def train(algo: str, task: Any, budget_steps: int, seed: int = 0, eval_every: in
             notes.append("TensorBoard logging skipped: the 'tensorboard' package is not installed")
     model = make_agent(algo, task, seed, tensorboard_log=tb, device=device, params=kw, policy=policy,
                        policy_kwargs=policy_kwargs)
+    agent = agent_of(model)  # acts on raw observations (normalized inside where the env is VecNormalize)
     curve: dict[str, list] = {"steps": [], "returns": [], "success": []}
     clock = {"eval": 0.0}
 
     def point(steps: int) -> None:
         t0 = time.perf_counter()
-        ret, succ = _curve_point(model, task, seeds)
+        ret, succ = _curve_point(agent, task, seeds)
         clock["eval"] += time.perf_counter() - t0
         curve["steps"].append(int(steps))
         curve["returns"].append(ret)
@@ -468,7 +480,7 @@ def train(algo: str, task: Any, budget_steps: int, seed: int = 0, eval_every: in
         for k in curve:
             curve[k].pop()
     point(model.num_timesteps)
-    res = TrainResult(model=model, algo=algo, task=name, seed=int(seed), steps=curve["steps"],
+    res = TrainResult(model=agent, algo=algo, task=name, seed=int(seed), steps=curve["steps"],
                       returns=curve["returns"], success=curve["success"], train_time_s=train_time,
                       eval_time_s=clock["eval"], num_timesteps=int(model.num_timesteps), params=kw,
                       notes=notes, policy_kwargs=dict(policy_kwargs or {}))
@@ -493,6 +505,9 @@ def save_agent(res: TrainResult, out_dir: str | Path, **extra) -> dict[str, str]
     d.mkdir(parents=True, exist_ok=True)
     paths = {"zip": str(d / "model.zip"), "pt": str(d / "policy.pt"), "json": str(d / "agent.json")}
     res.model.save(paths["zip"])
+    rms = save_obs_rms(res.model, d)  # VecNormalize's observation statistics, plain tensors
+    if rms is not None:
+        paths["obs_rms"] = rms
     state = {k: v.detach().cpu().clone() for k, v in res.model.policy.state_dict().items()}
     torch.save(state, paths["pt"])
     meta = {"algo": res.algo, "task": res.task, "seed": res.seed, **rebuild,
@@ -536,7 +551,7 @@ _PARAM_TYPES: dict[str, tuple] = {
     **dict.fromkeys(("gamma", "gae_lambda", "tau", "max_grad_norm", "vf_coef", "noise_std"), _NUM),
     **dict.fromkeys(("learning_rate", "clip_range"), (*_NUM, str)), "noise_type": (str,),
     "policy_kwargs": (dict,),
-    **dict.fromkeys(("use_sde", "normalize_advantage"), (bool,))}
+    **dict.fromkeys(("use_sde", "normalize_advantage"), (bool,)), "normalize": (bool, dict)}
 _POLICY_KWARG_TYPES: dict[str, tuple] = {
     "net_arch": (list, dict), "cost_net_arch": (list, None), "activation_fn": (type,),
     "optimizer_class": (type,), "optimizer_kwargs": (dict, None), "ortho_init": (bool,), "use_sde": (bool,),
@@ -650,6 +665,8 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
                                  f"{saved[k]}, but the env given has {now[k]} (other wrappers or arguments; "
                                  f"{meta_path}, key 'spaces')")
     model.num_timesteps = meta.get("num_timesteps", 0)
+    if meta["params"].get("normalize"):
+        return load_obs_rms(model, pt.parent)
     return model
 
 

@@ -16,10 +16,10 @@ DLR-RM/rl-baselines3-zoo at the commit named there.  Translation of the zoo's YA
   ``OrnsteinUhlenbeckActionNoise``, both with ``sigma = noise_std`` per action dimension, as the zoo does).
 * ``lin_X`` schedules would be kept as strings and made linear schedules by ``make_agent``; no entry
   copied here has one.
-* ``normalize: true`` (the zoo wraps the training env in ``VecNormalize``, observations and rewards) is
-  **not applied**: it is recorded in :data:`ZOO_NORMALIZE` and :func:`learning.baselines.train` adds a note
-  saying so; the agents here see raw observations and rewards, so these runs are not the zoo's exact setup
-  for those entries (PPO on MountainCarContinuous-v0 and on the MuJoCo ids).
+* ``normalize: true`` (the zoo wraps the training env in ``VecNormalize``, observations and rewards, the
+  reward's discount the algorithm's ``gamma``) is kept as the hyperparameter ``normalize: True``, which
+  :func:`learning.baselines.make_agent` applies (:mod:`learning.sb3_normalize`; the entries listed in
+  :data:`ZOO_NORMALIZE`: PPO on MountainCarContinuous-v0 and on the MuJoCo ids).
 * The MuJoCo entries are the zoo's ``-v2`` ids (``InvertedPendulum-v2``, ``InvertedDoublePendulum-v2``,
   ``Reacher-v2``, PPO only) and ``HalfCheetah-v4`` (PPO, SAC, TD3); the project runs ``-v5`` (the same
   models and rewards up to details in gymnasium's changelog).  Where the zoo has no tuned entry (SAC and
@@ -109,7 +109,8 @@ ZOO_TIMESTEPS: dict[str, dict[str, int]] = {
     "HalfCheetah-v5": {"ppo": 1_000_000, "sac": 1_000_000, "td3": 1_000_000},
 }
 
-#: the entries the zoo trains with ``normalize: true`` (VecNormalize), which is not applied here
+#: the entries the zoo trains with ``normalize: true`` (VecNormalize): :func:`zoo_hyperparams` adds
+#: ``normalize=True`` to them
 ZOO_NORMALIZE: dict[str, tuple[str, ...]] = {
     "MountainCarContinuous-v0": ("ppo",),
     "InvertedPendulum-v5": ("ppo",),
@@ -124,7 +125,10 @@ def zoo_hyperparams(algo: str, env_id: str) -> tuple[dict[str, Any], str]:
     ``default`` entry where it has none; the note then says so) — ``note`` is ``""`` for a tuned entry."""
     tuned = ZOO_HYPERPARAMS.get(env_id, {}).get(algo)
     if tuned is not None:
-        return _copy(tuned), ""
+        out = _copy(tuned)
+        if algo in ZOO_NORMALIZE.get(env_id, ()):
+            out["normalize"] = True
+        return out, ""
     return _copy(ZOO_DEFAULT[algo]), (f"no tuned rl-baselines3-zoo entry for {algo} on {env_id}: the zoo's "
                                       "default hyperparameters (SB3's defaults)")
 

@@ -3,14 +3,14 @@ trained within a step budget, all evaluated on the same held-out episodes.
 
 ``ENV`` is one of the project's tasks, or a foreign gymnasium id with a registered model
 (:mod:`learning.env_models`: ``Pendulum-v1``, ``MountainCarContinuous-v0``, ``InvertedPendulum-v5``,
-``InvertedDoublePendulum-v5``, ``Reacher-v5``).  On a foreign id the MPC is
-:class:`learning.model_mpc.ModelMPC` on the env's model, the agents train on SB3's vectorized
-``gymnasium.make(ENV)`` with the rl-baselines3-zoo's tuned hyperparameters
-(:mod:`learning.zoo_hyperparams`, without the zoo's ``VecNormalize``), everything is evaluated on the id
-itself (returns are the env's own), and the report's one table gives per policy the mean ± std return,
-the RL steps to match the MPC's mean return, the milliseconds per action at batch 1 and the zoo's
-published score (:mod:`learning.zoo`, "not published" where it has none); a success rate only where the env
-gives ``info["is_success"]``.  A foreign id without a registered model is refused unless ``mpc=False``
+``InvertedDoublePendulum-v5``, ``Reacher-v5``, ``HalfCheetah-v5``).  On a foreign id the MPC is the model's
+(:func:`learning.model_mpc.model_policy`), the agents train on SB3's vectorized ``gymnasium.make(ENV)`` with
+the rl-baselines3-zoo's tuned hyperparameters (:mod:`learning.zoo_hyperparams`, with the zoo's
+``VecNormalize`` where it has one), everything is evaluated on the id itself (returns are the env's own),
+and the report's one table gives per policy the mean ± std return, the RL steps to match the MPC's mean
+return, the milliseconds per action at batch 1 and the zoo's published score (:mod:`learning.zoo`, "not
+published" where it has none); a success rate only where the env gives ``info["is_success"]``.  A foreign
+id without a registered model is refused unless ``mpc=False``
 (``--no-mpc``): then only the agents are trained and compared.  From Python, :func:`compare` also takes an
 ``Env``, a ``VectorEnv`` or a factory of envs (:mod:`learning.env_source`): it is the recipe — every agent
 trains on its own copies, everything is evaluated on fresh ones, the MPC's model is checked against the env
