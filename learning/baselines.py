@@ -604,7 +604,9 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
     ``path`` may instead name an SB3 ``.zip``; it is loaded only with ``trust_zip=True``.  **Warning:**
     SB3 zip files contain pickled Python objects that ``load`` unpickles, so a model file from an
     untrusted source can execute arbitrary code on your machine — load only zips you made yourself.
-    ``algo`` (and ``task``) are needed for a zip without an ``agent.json`` beside it.
+    ``algo`` (and ``task``) are needed for a zip without an ``agent.json`` beside it; a zip whose
+    ``agent.json`` names ``normalize`` is handed out with the ``obs_rms.pt`` beside it (a
+    :class:`~learning.sb3_normalize.NormalizedModel`).
 
     ``agent.json`` is checked before anything is built: an entry of the wrong JSON type (``params`` or
     ``policy_kwargs`` not an object, ``seed`` not an int, a recorded hyperparameter or policy argument of the
@@ -623,7 +625,11 @@ def load_agent(path: str | Path, algo: str | None = None, task: Task | str | Non
         if algo is None:
             algo = read_agent_meta(p)["algo"]
         env = None if task is None else _one_env(_target(task, "load_agent"))
-        return _sb3_class(algo).load(str(p), env=env, device=device)
+        model = _sb3_class(algo).load(str(p), env=env, device=device)
+        meta_path = p.parent / "agent.json"  # trained with normalize: the zip's policy wants normalized obs
+        norm = (_checked_meta(read_agent_meta(p), meta_path)["params"].get("normalize")
+                if meta_path.is_file() else None)
+        return load_obs_rms(model, p.parent, norm) if norm else model
     pt = p / "policy.pt" if p.is_dir() else p
     meta_path = pt.parent / "agent.json"
     meta = _checked_meta(read_agent_meta(pt), meta_path)

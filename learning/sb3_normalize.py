@@ -12,7 +12,8 @@ SB3 model whose ``predict`` first normalizes the observation by the training sta
 (``policy``, ``save``, ``num_timesteps``, ...) is the model's.
 
 The statistics are saved as plain tensors (``obs_rms.pt``: ``mean``, ``var``, ``count``; loaded with
-``torch.load(..., weights_only=True)``), never with ``VecNormalize.save``, which pickles.  The reward
+``torch.load(..., weights_only=True)`` and checked: real numbers, finite, ``var`` and ``count`` ≥ 0), never
+with ``VecNormalize.save``, which pickles.  The reward
 statistics serve training only and are not saved: a loaded agent evaluates, it does not resume training with
 the same reward scale.
 """
@@ -32,12 +33,14 @@ OBS_RMS_FILE = "obs_rms.pt"
 
 
 def wrap_normalize(env, normalize: Any, gamma: float):
-    """``env`` in SB3's ``VecNormalize`` when ``normalize`` is ``True`` or a dict of its keyword arguments
-    (the zoo's convention: the reward's discount is the algorithm's ``gamma`` unless the dict names one);
-    ``env`` itself when it is falsy.  Anything else is a ``ValueError`` naming the hyperparameter."""
+    """``env`` in SB3's ``VecNormalize`` when ``normalize`` is ``True`` or a non-empty dict of its keyword
+    arguments (the zoo's convention: the reward's discount is the algorithm's ``gamma`` unless the dict names
+    one); ``env`` itself when it is falsy (``False``, ``None``, ``{}``: what
+    :func:`learning.baselines.load_agent` reads as "no normalize" too).  Anything else is a ``ValueError``
+    naming the hyperparameter."""
     from stable_baselines3.common.vec_env import VecNormalize
 
-    if normalize is None or normalize is False:
+    if normalize is None or normalize is False or (isinstance(normalize, dict) and not normalize):
         return env
     if normalize is True:
         kw: dict[str, Any] = {}
@@ -56,11 +59,12 @@ def wrap_normalize(env, normalize: Any, gamma: float):
 class NormalizedModel:
     """An SB3 model trained on a ``VecNormalize`` env, whose ``predict`` normalizes raw observations by that
     env's observation statistics (module docstring).  ``vecnorm`` is read when ``predict`` is called, so a
-    model still training is evaluated with the statistics of the moment."""
+    model still training is evaluated with the statistics of the moment.  Attributes other than ``model``
+    and ``vecnorm`` are read from, and set on, the model."""
 
     def __init__(self, model, vecnorm):
-        self.model = model
-        self.vecnorm = vecnorm
+        object.__setattr__(self, "model", model)
+        object.__setattr__(self, "vecnorm", vecnorm)
 
     def normalize_obs(self, obs) -> np.ndarray:
         v = self.vecnorm
@@ -75,7 +79,17 @@ class NormalizedModel:
                                   deterministic=deterministic)
 
     def __getattr__(self, name: str):
+        # only reached where normal lookup fails; "model" itself missing (copy/pickle build the object
+        # without __init__) and special names must fail here, not recurse
+        if name in ("model", "vecnorm") or (name.startswith("__") and name.endswith("__")):
+            raise AttributeError(name)
         return getattr(self.model, name)
+
+    def __setattr__(self, name: str, value) -> None:
+        if name in ("model", "vecnorm"):
+            object.__setattr__(self, name, value)
+        else:
+            setattr(self.model, name, value)
 
     def __repr__(self) -> str:
         return f"NormalizedModel({type(self.model).__name__})"
@@ -106,29 +120,66 @@ def save_obs_rms(agent, folder: str | Path) -> str | None:
     return str(path)
 
 
-def load_obs_rms(model, folder: str | Path) -> NormalizedModel:
+def _frozen_stats(normalize: Any, shape: tuple) -> Any:
+    """What :class:`NormalizedModel` reads of a ``VecNormalize`` (``norm_obs``, ``clip_obs``, ``epsilon``,
+    ``obs_rms``), for a model whose env is none: ``VecNormalize``'s defaults, or the values ``normalize``
+    (``True`` or a dict of its keyword arguments) names."""
+    import inspect
+    from types import SimpleNamespace
+
+    from stable_baselines3.common.running_mean_std import RunningMeanStd
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    kw = {k: p.default for k, p in inspect.signature(VecNormalize.__init__).parameters.items()
+          if k in ("norm_obs", "clip_obs", "epsilon")}
+    if isinstance(normalize, dict):
+        kw.update({k: normalize[k] for k in kw if k in normalize})
+    return SimpleNamespace(obs_rms=RunningMeanStd(shape=shape), training=False, **kw)
+
+
+def load_obs_rms(model, folder: str | Path, normalize: Any = True):
     """The model of a ``VecNormalize`` env with the observation statistics of ``folder/obs_rms.pt`` (read
-    with ``weights_only=True``), its ``VecNormalize`` frozen (``training = False``); a missing file or
-    statistics of the wrong shape are a ``ValueError`` naming the file."""
+    with ``weights_only=True``), its ``VecNormalize`` frozen (``training = False``): a
+    :class:`NormalizedModel`, or ``model`` itself where the ``VecNormalize`` does not normalize
+    observations (``norm_obs=False``: nothing was saved, nothing to load).  A model without a
+    ``VecNormalize`` (an SB3 zip loaded without its env) gets one's settings from ``normalize`` (the
+    hyperparameter).  A missing or unreadable file, or statistics of the wrong shape, not real, not finite,
+    or negative (``var``, ``count``) are a ``ValueError`` naming the file."""
     from stable_baselines3.common.vec_env import unwrap_vec_normalize
 
     path = Path(folder) / OBS_RMS_FILE
-    v = unwrap_vec_normalize(model.get_env())
+    env = model.get_env()
+    v = None if env is None else unwrap_vec_normalize(env)
     if v is None:
-        raise ValueError("load_obs_rms: the model's env is not a VecNormalize")
+        if normalize is None or normalize is False:
+            raise ValueError("load_obs_rms: the model's env is not a VecNormalize")
+        v = _frozen_stats(normalize, tuple(model.observation_space.shape))
+    if not v.norm_obs:
+        return model
     if not path.is_file():
         raise ValueError(f"load_agent: {path} is missing: the agent was trained with normalize "
                          "(VecNormalize) and needs its observation statistics")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as e:  # not a torch file, truncated, or pickled objects (refused by weights_only)
+        raise ValueError(f"load_agent: {path} cannot be read as plain tensors (written by "
+                         f"learning.baselines.save_agent): {type(e).__name__}: {str(e)[:200]}") from None
     shape = v.obs_rms.mean.shape
-    ok = (isinstance(state, dict) and {"mean", "var", "count"} <= set(state)
-          and all(isinstance(state[k], torch.Tensor) for k in ("mean", "var", "count"))
-          and tuple(state["mean"].shape) == shape and tuple(state["var"].shape) == shape)
+    keys = ("mean", "var", "count")
+    ok = (isinstance(state, dict) and set(keys) <= set(state)
+          and all(isinstance(state[k], torch.Tensor) and not state[k].is_complex()
+                  and state[k].dtype != torch.bool and state[k].layout == torch.strided
+                  and state[k].device.type == "cpu" for k in keys)
+          and tuple(state["mean"].shape) == shape and tuple(state["var"].shape) == shape
+          and state["count"].numel() == 1)
     if not ok:
         raise ValueError(f"load_agent: {path} must hold tensors 'mean' and 'var' of shape {shape} and "
-                         "'count' (written by learning.baselines.save_agent)")
-    v.obs_rms.mean = state["mean"].double().numpy().copy()
-    v.obs_rms.var = state["var"].double().numpy().copy()
-    v.obs_rms.count = float(state["count"])
+                         "'count' (one number), of real numbers (written by learning.baselines.save_agent)")
+    mean, var, count = (state[k].detach().double().numpy().copy() for k in keys)
+    if not (np.isfinite(mean).all() and np.isfinite(var).all() and np.isfinite(count).all()
+            and (var >= 0).all() and (count >= 0).all()):
+        raise ValueError(f"load_agent: {path}: the statistics must be finite, 'var' and 'count' >= 0 (the "
+                         "file was edited, or not written by learning.baselines.save_agent)")
+    v.obs_rms.mean, v.obs_rms.var, v.obs_rms.count = mean, var, float(count.reshape(()))
     v.training = False
     return NormalizedModel(model, v)
